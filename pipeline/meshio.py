@@ -1,0 +1,109 @@
+"""Load, validate and normalise meshes (any format trimesh reads) for rendering."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used: empty, zero-area, non-finite, too large, unreadable."""
+
+
+@dataclass
+class LoadedMesh:
+    """Normalised geometries (centred at the origin, bounding sphere radius 1, z up) and stats."""
+
+    geometries: list  # trimesh.Trimesh, already transformed
+    n_vertices: int
+    n_faces: int
+    bounds_min: list[float]
+    bounds_max: list[float]
+    units_guess: str
+    scale_to_unit: float
+    sample_points: np.ndarray  # up to 4096 normalised vertices, for camera fitting
+
+
+def load_mesh(
+    path: str, fmt: str, *, max_faces: int, up: str = "auto", max_texture: int = 1024
+) -> LoadedMesh:
+    """Load ``path``; raise :class:`MeshError` with a one-line reason for unusable meshes."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(path, file_type=fmt, process=False, maintain_order=True)
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise MeshError(f"cannot parse {fmt.upper()} file: {type(exc).__name__}: {str(exc)[:160]}") from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
+    elif isinstance(loaded, trimesh.Trimesh):
+        geoms = [loaded]
+    else:
+        geoms = []
+    geoms = [g for g in geoms if len(g.faces) > 0 and len(g.vertices) > 0]
+    if not geoms:
+        raise MeshError("empty mesh: no faces")
+    n_faces = int(sum(len(g.faces) for g in geoms))
+    n_vertices = int(sum(len(g.vertices) for g in geoms))
+    if n_faces > max_faces:
+        raise MeshError(f"too many faces: {n_faces:,} > --max-faces {max_faces:,}")
+    verts = np.concatenate([np.asarray(g.vertices, dtype=np.float64) for g in geoms])
+    if not np.isfinite(verts).all():
+        raise MeshError("non-finite (NaN or inf) vertex coordinates")
+    area = float(sum(g.area for g in geoms))
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    extent = float(np.max(hi - lo))
+    if not np.isfinite(area) or area <= 1e-12 * max(extent, 1e-12) ** 2 or extent <= 0:
+        raise MeshError("zero-area mesh: all faces are degenerate")
+
+    rot = _up_rotation(fmt, up)
+    centre = (lo + hi) / 2.0
+    radius = float(np.max(np.linalg.norm(verts - centre, axis=1)))
+    scale = 1.0 / radius
+    transform = np.eye(4)
+    transform[:3, :3] = rot * scale
+    transform[:3, 3] = -(rot @ centre) * scale
+    for g in geoms:
+        g.apply_transform(transform)
+        _shrink_texture(g, max_texture)
+    pts = (verts - centre) @ rot.T * scale
+    if len(pts) > 4096:
+        pts = pts[np.linspace(0, len(pts) - 1, 4096).astype(int)]
+    return LoadedMesh(
+        geometries=geoms,
+        n_vertices=n_vertices,
+        n_faces=n_faces,
+        bounds_min=lo.tolist(),
+        bounds_max=hi.tolist(),
+        units_guess="mm" if extent > 20.0 else "m",
+        scale_to_unit=scale,
+        sample_points=pts,
+    )
+
+
+def _up_rotation(fmt: str, up: str) -> np.ndarray:
+    """Rotation that makes the mesh z-up (glTF is y-up by specification)."""
+    if up == "auto":
+        up = "y" if fmt in ("glb", "gltf") else "z"
+    if up == "z":
+        return np.eye(3)
+    if up == "y":
+        return np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # +90 deg about x: y -> z
+    raise MeshError(f"unknown up axis {up!r}")
+
+
+def _shrink_texture(geom, max_edge: int) -> None:
+    """Downscale large textures in place: software GL uploads 4k textures slowly, captions need no more."""
+    visual = getattr(geom, "visual", None)
+    material = getattr(visual, "material", None)
+    if material is None:
+        return
+    for attr in ("image", "baseColorTexture"):
+        img = getattr(material, attr, None)
+        if img is not None and hasattr(img, "size") and max(img.size) > max_edge:
+            s = max_edge / max(img.size)
+            new = img.convert("RGBA" if img.mode in ("RGBA", "LA", "P") else "RGB").resize(
+                (max(1, round(img.size[0] * s)), max(1, round(img.size[1] * s)))
+            )
+            setattr(material, attr, new)

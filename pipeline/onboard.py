@@ -1,0 +1,125 @@
+"""``python -m pipeline.onboard LIBRARY_DIR --store STORE_DIR``: onboard a CAD library into a store."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from pipeline.cli_common import add_model_args, fail, model_overrides
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from pipeline.config import STAGES
+    from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
+
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.onboard",
+        description="Render, caption and embed every new mesh of LIBRARY_DIR into the store (incremental).",
+    )
+    p.add_argument(
+        "library", metavar="LIBRARY_DIR", help="folder tree of meshes (.obj/.ply/.glb/.gltf/.stl/.off)"
+    )
+    p.add_argument("--store", required=True, metavar="STORE_DIR", help="store directory (created if missing)")
+    add_model_args(p)
+    p.add_argument(
+        "--prompt-style",
+        default=DEFAULT_PROMPT_STYLE,
+        choices=sorted(PROMPT_STYLES),
+        help="captioning prompt style of the paper's prompt table (default: %(default)s)",
+    )
+    p.add_argument(
+        "--cameras",
+        default="oscar",
+        choices=["oscar", "cap3d"],
+        help="oscar: 4 views at -15 and 4 at +15 deg elevation; cap3d: the reference scripts' 8 positions",
+    )
+    p.add_argument("--resolution", type=int, default=512, help="view size in pixels (default: 512)")
+    p.add_argument(
+        "--upper-ring-offset",
+        type=float,
+        default=45.0,
+        help="azimuth offset in degrees of the +15 deg ring (default: 45; 0 aligns both rings)",
+    )
+    p.add_argument(
+        "--up", default="auto", choices=["auto", "z", "y"], help="up axis of the meshes (auto: z, y for glTF)"
+    )
+    p.add_argument(
+        "--max-faces", type=int, default=2_000_000, help="meshes with more faces fail (default: 2M)"
+    )
+    p.add_argument("--render-timeout", type=float, default=120.0, help="seconds per mesh before it fails")
+    p.add_argument(
+        "--workers", type=int, default=2, help="render processes (0: render in-process, no timeout)"
+    )
+    p.add_argument("--batch-size", type=int, default=16, help="meshes per commit")
+    p.add_argument(
+        "--force",
+        action="append",
+        default=[],
+        choices=list(STAGES),
+        help="redo STAGE (and what depends on it) for every mesh; repeatable",
+    )
+    p.add_argument(
+        "--retry-failed", action="store_true", help="retry meshes that failed with the same config"
+    )
+    p.add_argument("--engine", default="local", choices=["local", "ray"], help="executor (default: local)")
+    p.add_argument(
+        "--address", default=None, help="Ray cluster address for --engine ray (default: start local)"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from pathlib import Path
+
+    from pipeline.config import OnboardConfig, RenderConfig
+
+    if not Path(args.library).is_dir():
+        return fail(f"library folder not found: {args.library}")
+    try:
+        cfg = OnboardConfig(
+            profile=args.profile,
+            model_overrides=model_overrides(args),
+            prompt_style=args.prompt_style,
+            render=RenderConfig(
+                cameras=args.cameras,
+                resolution=args.resolution,
+                upper_ring_offset_deg=args.upper_ring_offset,
+                up=args.up,
+            ),
+            max_faces=args.max_faces,
+            render_timeout_s=args.render_timeout,
+            workers=args.workers,
+            batch_size=max(1, args.batch_size),
+            retry_failed=args.retry_failed,
+            force=tuple(args.force),
+            engine=args.engine,
+            model_options={"_ray": {"address": args.address}} if args.address else {},
+        )
+        cfg.fingerprints()
+    except ValueError as exc:
+        return fail(str(exc))
+
+    from pipeline.executor import run_onboarding
+    from pipeline.models.registry import ModelLoadError
+    from pipeline.store import StoreError
+
+    try:
+        summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
+    except (StoreError, ModelLoadError) as exc:
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        return fail("interrupted: committed batches are kept; run the same command again to resume", 130)
+    if args.json:
+        print(json.dumps(summary.to_dict(), indent=2))
+    else:
+        for line in summary.lines():
+            print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

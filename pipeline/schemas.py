@@ -1,0 +1,159 @@
+"""Explicit Arrow schemas for every table of the store.
+
+Writers always cast to these schemas; nothing is inferred. Embedding tables are partitioned by encoder
+(``text_embeddings/<encoder_slug>/``) because each encoder has its own fixed vector width.
+"""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+TS = pa.timestamp("us", tz="UTC")
+VEC3 = pa.list_(pa.float64(), 3)
+MAT4 = pa.list_(pa.float64(), 16)
+
+DEP = pa.struct([("path", pa.string()), ("size", pa.int64()), ("mtime_ns", pa.int64())])
+
+MESHES = pa.schema(
+    [
+        pa.field("mesh_id", pa.string(), nullable=False),  # sha256 of the mesh file + every referenced file
+        pa.field("source_path", pa.string(), nullable=False),  # path relative to library_root
+        pa.field("library_root", pa.string(), nullable=False),
+        pa.field("name", pa.string()),  # human-readable model name (parent folder or file stem)
+        pa.field("format", pa.string()),
+        pa.field("file_size", pa.int64()),
+        pa.field("mtime_ns", pa.int64()),
+        pa.field("deps", pa.list_(DEP)),  # referenced files (.mtl, textures, .bin) with size and mtime
+        pa.field("n_vertices", pa.int64()),
+        pa.field("n_faces", pa.int64()),
+        pa.field("bounds_min", VEC3),  # in file units
+        pa.field("bounds_max", VEC3),
+        pa.field("units_guess", pa.string()),  # "m" | "mm"
+        pa.field("scale_to_unit", pa.float64()),  # factor that maps the mesh to a unit bounding sphere
+        pa.field("status", pa.string(), nullable=False),  # "active" | "removed" | "failed"
+        pa.field("seen_at", TS, nullable=False),
+        pa.field("run_id", pa.string(), nullable=False),
+    ]
+)
+
+VIEWS = pa.schema(
+    [
+        pa.field("mesh_id", pa.string(), nullable=False),
+        pa.field("view_index", pa.int16(), nullable=False),
+        pa.field("azimuth_deg", pa.float32()),
+        pa.field("elevation_deg", pa.float32()),
+        pa.field("camera_pose", MAT4),  # camera-to-world, OpenGL convention, row-major
+        pa.field("yfov_deg", pa.float32()),
+        pa.field("width", pa.int32()),
+        pa.field("height", pa.int32()),
+        pa.field("image", pa.binary()),  # PNG bytes
+        pa.field("fingerprint", pa.string(), nullable=False),
+        pa.field("run_id", pa.string(), nullable=False),
+    ]
+)
+
+CAPTIONS = pa.schema(
+    [
+        pa.field("mesh_id", pa.string(), nullable=False),
+        pa.field("view_index", pa.int16(), nullable=False),
+        pa.field("captioner_id", pa.string(), nullable=False),
+        pa.field("prompt_style", pa.string()),
+        pa.field("prompt", pa.string()),
+        pa.field("caption", pa.string()),
+        pa.field("fingerprint", pa.string(), nullable=False),
+        pa.field("view_fingerprint", pa.string(), nullable=False),
+        pa.field("run_id", pa.string(), nullable=False),
+    ]
+)
+
+
+def embedding_schema(dim: int) -> pa.Schema:
+    """Schema of one encoder's partition of ``text_embeddings`` or ``image_embeddings``."""
+    return pa.schema(
+        [
+            pa.field("mesh_id", pa.string(), nullable=False),
+            pa.field("view_index", pa.int16(), nullable=False),
+            pa.field("encoder_id", pa.string(), nullable=False),
+            pa.field("dim", pa.int32(), nullable=False),
+            pa.field("embedding", pa.list_(pa.float32(), dim)),  # L2-normalised at write
+            pa.field("fingerprint", pa.string(), nullable=False),
+            pa.field("source_fingerprint", pa.string(), nullable=False),  # caption or view fingerprint
+            pa.field("run_id", pa.string(), nullable=False),
+        ]
+    )
+
+
+ERRORS = pa.schema(
+    [
+        pa.field("run_id", pa.string(), nullable=False),
+        pa.field(
+            "stage", pa.string(), nullable=False
+        ),  # discover | render | caption | embed_text | embed_image
+        pa.field("mesh_id", pa.string()),
+        pa.field("source_path", pa.string()),
+        pa.field("fingerprint", pa.string()),
+        pa.field("error_type", pa.string()),
+        pa.field("reason", pa.string(), nullable=False),
+        pa.field("at", TS, nullable=False),
+    ]
+)
+
+RUNS = pa.schema(
+    [
+        pa.field("run_id", pa.string(), nullable=False),
+        pa.field("engine", pa.string()),
+        pa.field("library_root", pa.string()),
+        pa.field("profile", pa.string()),
+        pa.field("config_json", pa.string()),  # full config incl. model ids and per-stage fingerprints
+        pa.field("started_at", TS),
+        pa.field("finished_at", TS),
+        pa.field("n_files", pa.int64()),
+        pa.field("n_added", pa.int64()),
+        pa.field("n_removed", pa.int64()),
+        pa.field("n_skipped", pa.int64()),
+        pa.field("n_failed", pa.int64()),
+        pa.field("stage_seconds_json", pa.string()),  # {"discover": s, "render": s, ...}
+        pa.field("status", pa.string()),  # "ok" | "interrupted"
+    ]
+)
+
+#: Fixed-schema tables; embedding tables are built with :func:`embedding_schema`.
+TABLES: dict[str, pa.Schema] = {
+    "meshes": MESHES,
+    "views": VIEWS,
+    "captions": CAPTIONS,
+    "errors": ERRORS,
+    "runs": RUNS,
+}
+EMBEDDING_TABLES = ("text_embeddings", "image_embeddings")
+
+#: Row keys: a row with the same key and a later run_id supersedes an earlier one.
+KEYS: dict[str, tuple[str, ...]] = {
+    "meshes": ("library_root", "source_path", "mesh_id"),
+    "views": ("mesh_id", "view_index", "fingerprint"),
+    "captions": ("mesh_id", "view_index", "fingerprint"),
+    "text_embeddings": ("mesh_id", "view_index", "fingerprint"),
+    "image_embeddings": ("mesh_id", "view_index", "fingerprint"),
+}
+
+
+def schema_for(table: str, dim: int | None = None) -> pa.Schema:
+    """Return the schema of ``table`` (``dim`` is required for embedding tables)."""
+    if table in EMBEDDING_TABLES:
+        if dim is None:
+            raise ValueError(f"{table} needs the embedding dimension")
+        return embedding_schema(dim)
+    return TABLES[table]
+
+
+def conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
+    """Select and cast ``table``'s columns to ``schema`` (missing nullable columns become nulls)."""
+    cols = []
+    for field in schema:
+        if field.name in table.column_names:
+            cols.append(table.column(field.name).cast(field.type))
+        elif field.nullable:
+            cols.append(pa.nulls(table.num_rows, field.type))
+        else:
+            raise ValueError(f"column {field.name!r} is required by the schema")
+    return pa.Table.from_arrays(cols, schema=schema)

@@ -1,0 +1,58 @@
+"""Caption stage: view images in, one caption row per view out."""
+
+from __future__ import annotations
+
+import pyarrow as pa
+
+from pipeline import schemas
+from pipeline.config import OnboardConfig
+from pipeline.models.registry import create_model
+from pipeline.stages.base import error_row, with_errors
+
+CAPTION_OUT = with_errors(schemas.CAPTIONS)
+
+
+class CaptionStage:
+    """Captions every view with the profile's captioner (built once, lazily)."""
+
+    def __init__(self, cfg: OnboardConfig, run_id: str, model=None):
+        self.cfg = cfg
+        self.run_id = run_id
+        self.spec = cfg.get_profile().captioner
+        self.fingerprint = cfg.fingerprints()["caption"]
+        self._model = model
+
+    @property
+    def model(self):
+        if self._model is None:
+            self._model = create_model("captioner", self.spec, **self.cfg.model_options.get("captioner", {}))
+        return self._model
+
+    def __call__(self, views: pa.Table) -> pa.Table:
+        from pipeline.render import decode_png
+
+        items = views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
+        rows: list[dict] = []
+        by_mesh: dict[str, list[dict]] = {}
+        for it in items:
+            by_mesh.setdefault(it["mesh_id"], []).append(it)
+        for mesh_id, its in by_mesh.items():
+            base = {"mesh_id": mesh_id, "fingerprint": self.fingerprint, "run_id": self.run_id}
+            try:
+                texts = self.model.caption([decode_png(it["image"]) for it in its], self.cfg.prompt)
+            except Exception as exc:  # a failing mesh becomes an errors row
+                rows.append(error_row(CAPTION_OUT, base, exc))
+                continue
+            for it, text in zip(its, texts, strict=True):
+                rows.append(
+                    {
+                        **base,
+                        "view_index": it["view_index"],
+                        "captioner_id": self.spec.key(),
+                        "prompt_style": self.cfg.prompt_style,
+                        "prompt": self.cfg.prompt,
+                        "caption": text,
+                        "view_fingerprint": it["fingerprint"],
+                    }
+                )
+        return pa.Table.from_pylist(rows, schema=CAPTION_OUT)

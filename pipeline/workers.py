@@ -1,0 +1,111 @@
+"""A pool of render worker processes with a per-mesh timeout.
+
+A mesh that hangs or crashes its worker (a 5M-face file, a driver fault) becomes an error row; the
+worker is killed and replaced, and the run goes on.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from multiprocessing.connection import wait
+
+from pipeline.config import OnboardConfig
+from pipeline.stages.base import error_row
+from pipeline.stages.render import RENDER_OUT
+
+
+def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
+    from pipeline.stages.render import RenderStage
+
+    stage = RenderStage(cfg, run_id)
+    while True:
+        try:
+            item = conn.recv()
+        except EOFError:
+            return
+        if item is None:
+            return
+        conn.send(stage.render_one(item))
+
+
+class _Worker:
+    def __init__(self, ctx, cfg: OnboardConfig, run_id: str):
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id), daemon=True)
+        self.proc.start()
+        child.close()
+        self.item: dict | None = None
+        self.deadline = 0.0
+
+    def kill(self) -> None:
+        self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
+
+
+class RenderPool:
+    """Renders meshes in ``n`` spawned processes; yields ``(item, rows)`` in completion order."""
+
+    def __init__(self, cfg: OnboardConfig, run_id: str, n: int, timeout_s: float):
+        self.cfg, self.run_id, self.timeout_s = cfg, run_id, timeout_s
+        self._ctx = mp.get_context("spawn")
+        self._workers = [_Worker(self._ctx, cfg, run_id) for _ in range(max(1, n))]
+
+    def _fail(self, item: dict, reason: str, kind: str) -> list[dict]:
+        base = {
+            "mesh_id": item["mesh_id"],
+            "fingerprint": self.cfg.fingerprints()["render"],
+            "run_id": self.run_id,
+        }
+        return [error_row(RENDER_OUT, base, reason, kind)]
+
+    def map(self, items: Iterable[dict]) -> Iterator[tuple[dict, list[dict]]]:
+        todo = deque(items)
+        while todo or any(w.item is not None for w in self._workers):
+            for w in self._workers:
+                if w.item is None and todo:
+                    w.item = todo.popleft()
+                    w.deadline = time.monotonic() + self.timeout_s
+                    w.conn.send(w.item)
+            busy = [w for w in self._workers if w.item is not None]
+            timeout = max(0.0, min(w.deadline for w in busy) - time.monotonic())
+            ready = wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=timeout)
+            now = time.monotonic()
+            for i, w in enumerate(self._workers):
+                if w.item is None:
+                    continue
+                item = w.item
+                if w.conn in ready:
+                    try:
+                        rows = w.conn.recv()
+                    except (EOFError, OSError):
+                        rows = None
+                    if rows is not None:
+                        w.item = None
+                        yield item, rows
+                        continue
+                if w.proc.sentinel in ready and not w.proc.is_alive():
+                    code = w.proc.exitcode
+                    self._replace(i)
+                    yield item, self._fail(item, f"render worker crashed (exit code {code})", "WorkerCrash")
+                elif now >= w.deadline:
+                    self._replace(i)
+                    yield item, self._fail(item, f"render timed out after {self.timeout_s:g} s", "Timeout")
+
+    def _replace(self, i: int) -> None:
+        self._workers[i].kill()
+        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id)
+
+    def close(self) -> None:
+        for w in self._workers:
+            try:
+                w.conn.send(None)
+            except (OSError, BrokenPipeError):
+                pass
+        for w in self._workers:
+            w.proc.join(5)
+            if w.proc.is_alive():
+                w.proc.kill()
