@@ -61,6 +61,33 @@ def look_at_pose(direction: np.ndarray, distance: float, up=(0.0, 0.0, 1.0)) -> 
     return pose
 
 
+def framed_pose(
+    points: np.ndarray, direction: np.ndarray, yfov_deg: float, fill: float, iterations: int = 4
+) -> np.ndarray:
+    """Camera-to-world pose looking along ``-direction`` with the object centred and filling ``fill`` of the frame.
+
+    The aim point is moved across the view until the perspective projection of the object is centred
+    (off-centre shapes such as a banana seen from the side stay centred); the distance is then fitted.
+    """
+    axes = look_at_pose(direction, 1.0)
+    right, up = axes[:3, 0], axes[:3, 1]
+    t = math.tan(math.radians(yfov_deg) / 2.0)
+    u, v = points @ right, points @ up
+    target = right * (u.min() + u.max()) / 2.0 + up * (v.min() + v.max()) / 2.0
+    for _ in range(iterations):
+        rel = points - target
+        dist = fit_distance(rel, direction, yfov_deg, fill)
+        depth = dist - rel @ direction
+        x, y = (rel @ right) / (depth * t), (rel @ up) / (depth * t)
+        cx, cy = (x.min() + x.max()) / 2.0, (y.min() + y.max()) / 2.0
+        target = target + (right * cx + up * cy) * dist * t
+    rel = points - target
+    dist = fit_distance(rel, direction, yfov_deg, fill)
+    pose = axes.copy()
+    pose[:3, 3] = target + direction * dist
+    return pose
+
+
 def fit_distance(points: np.ndarray, direction: np.ndarray, yfov_deg: float, fill: float) -> float:
     """Smallest camera distance at which every point projects within ``fill`` of the (square) frame.
 

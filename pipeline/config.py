@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
 
 #: Bump when rendering code changes in a way that changes pixels.
-RENDER_VERSION = "pyrender-1"
+RENDER_VERSION = "pyrender-3"
 #: Bump when the offline attribute captioner's wording changes.
 STAGES = ("render", "caption", "embed_text", "embed_image")
 GRAY = (205, 205, 205)

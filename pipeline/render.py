@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.cameras import fit_distance, look_at_pose, view_directions
+from pipeline.cameras import framed_pose, view_directions
 from pipeline.config import RenderConfig
 from pipeline.meshio import LoadedMesh
 
@@ -63,8 +63,7 @@ class Renderer:
         try:
             views = []
             for i, (az, el, direction) in enumerate(view_directions(self.cfg)):
-                dist = fit_distance(mesh.sample_points, direction, self.cfg.yfov_deg, self.cfg.fill)
-                pose = look_at_pose(direction, dist)
+                pose = framed_pose(mesh.sample_points, direction, self.cfg.yfov_deg, self.cfg.fill)
                 self._scene.set_pose(self._cam, pose)
                 self._scene.set_pose(self._light, pose)
                 color, _ = self._renderer.render(self._scene)
