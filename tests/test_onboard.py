@@ -108,9 +108,7 @@ def test_modified_added_removed_files(tmp_path, offline_models):
     store = tmp_path / "store"
     onboard(lib, store, offline_models)
     s = Store.open(store)
-    old_ids = dict(
-        zip(s.read("meshes").column("name").to_pylist(), s.read("meshes").column("mesh_id").to_pylist())
-    )
+    old_ids = {r["name"]: r["mesh_id"] for r in s.read("meshes").to_pylist()}
 
     # modify one mesh (content changes -> new mesh_id), remove another, add a third
     obj = lib / MESHES[0] / "textured.obj"
