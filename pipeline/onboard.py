@@ -106,10 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.executor import run_onboarding
     from pipeline.models.registry import ModelLoadError
     from pipeline.store import StoreError
+    from pipeline.workers import RenderSetupError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
-    except (StoreError, ModelLoadError) as exc:
+    except (StoreError, ModelLoadError, RenderSetupError) as exc:
         return fail(str(exc))
     except KeyboardInterrupt:
         return fail("interrupted: committed batches are kept; run the same command again to resume", 130)

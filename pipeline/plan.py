@@ -123,6 +123,15 @@ def make_plan(
     need_render = todo("views", fps["render"], "render") - bad_render
     # a mesh that must be re-rendered needs everything downstream again
     plan.render = [m for m in ids if m in need_render]
+    for f in files:  # a failed mesh that is rendered again gets a fresh meshes row (active or failed)
+        row = current.get(f.source_path)
+        if (
+            row is not None
+            and row["status"] == "failed"
+            and row["mesh_id"] == f.mesh_id
+            and f.mesh_id in need_render
+        ):
+            new_paths.setdefault(f.mesh_id, []).append(f)
     ok = set(ids) - bad_render
     plan.caption = ((todo("captions", fps["caption"], "caption") | need_render) & ok) - failed.get(
         fps["caption"], set()

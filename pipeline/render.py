@@ -47,6 +47,20 @@ class Renderer:
         )
         self._light = self._scene.add(pyrender.DirectionalLight(intensity=2.6), pose=np.eye(4))
 
+    def warm_up(self) -> None:
+        """Render a small textured triangle once so shader compilation is not billed to the first mesh."""
+        import trimesh
+        from PIL import Image
+
+        from pipeline.meshio import LoadedMesh
+
+        tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False)
+        tri.visual = trimesh.visual.TextureVisuals(
+            uv=[[0, 0], [1, 0], [0, 1]], image=Image.new("RGB", (4, 4), (200, 30, 30))
+        )
+        pts = np.asarray(tri.vertices, dtype=np.float64)
+        self.render(LoadedMesh([tri], 3, 1, [0, 0, 0], [1, 1, 0], "m", 1.0, pts))
+
     def render(self, mesh: LoadedMesh) -> list[RenderedView]:
         """Render every view of ``mesh`` (already normalised to the unit sphere, z up)."""
         pyrender = self._pyrender

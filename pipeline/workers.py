@@ -17,10 +17,16 @@ from pipeline.stages.base import error_row
 from pipeline.stages.render import RENDER_OUT
 
 
+class RenderSetupError(RuntimeError):
+    """A render worker could not start (no EGL / OpenGL driver)."""
+
+
 def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
     from pipeline.stages.render import RenderStage
 
     stage = RenderStage(cfg, run_id)
+    stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
+    conn.send("ready")
     while True:
         try:
             item = conn.recv()
@@ -39,6 +45,7 @@ class _Worker:
         child.close()
         self.item: dict | None = None
         self.deadline = 0.0
+        self.ready = False
 
     def kill(self) -> None:
         self.proc.kill()
@@ -66,15 +73,31 @@ class RenderPool:
         todo = deque(items)
         while todo or any(w.item is not None for w in self._workers):
             for w in self._workers:
-                if w.item is None and todo:
+                if w.ready and w.item is None and todo:
                     w.item = todo.popleft()
                     w.deadline = time.monotonic() + self.timeout_s
                     w.conn.send(w.item)
+            starting = [w for w in self._workers if not w.ready]
             busy = [w for w in self._workers if w.item is not None]
-            timeout = max(0.0, min(w.deadline for w in busy) - time.monotonic())
-            ready = wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=timeout)
+            timeout = max(0.0, min(w.deadline for w in busy) - time.monotonic()) if busy else None
+            ready = wait(
+                [w.conn for w in busy + starting] + [w.proc.sentinel for w in busy + starting], timeout
+            )
             now = time.monotonic()
             for i, w in enumerate(self._workers):
+                if not w.ready:
+                    if w.conn in ready:
+                        try:
+                            w.ready = w.conn.recv() == "ready"
+                        except (EOFError, OSError):
+                            raise RenderSetupError(
+                                "render worker failed to start (no EGL/OpenGL? see README: install libegl1 libegl-mesa0 libgl1)"
+                            ) from None
+                    elif w.proc.sentinel in ready:
+                        raise RenderSetupError(
+                            f"render worker failed to start (exit code {w.proc.exitcode}); run with --workers 0 to see why"
+                        )
+                    continue
                 if w.item is None:
                     continue
                 item = w.item
