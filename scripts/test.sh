@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Install (as the quickstart does, plus the test extras) and run the whole test suite.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/install.sh dev
+PY="${PYTHON:-python3}"
+"$PY" -m ruff check pipeline tests bench
+"$PY" -m pytest -q "$@"
