@@ -111,6 +111,7 @@ class LocalExecutor:
         summary.removed = len(plan.removed_rows)
         summary.added = sum(len(v) for v in plan.new_paths.values())
         self._commit_discovery(plan)
+        self._load_models(plan)
         summary.failed += len(plan.discover_errors)
         bars = _bars(self.progress, plan)
         try:
@@ -129,6 +130,17 @@ class LocalExecutor:
         summary.seconds = {k: round(v, 3) for k, v in self.seconds.items()}
         summary.total_seconds = round(time.perf_counter() - t0, 3)
         return summary
+
+    def _load_models(self, plan: Plan) -> None:
+        """Build the models this run needs before any rendering, so a missing weight fails fast."""
+        with _Timer(self.seconds, "model_load"):
+            if plan.caption:
+                _ = self.caption.model
+            if plan.embed_text:
+                _ = self.text.model
+            for role, stage in self.images.items():
+                if plan.embed_image.get(role):
+                    _ = stage.model
 
     def _commit_discovery(self, plan: Plan) -> None:
         """Commit vanished/replaced files, discovery errors and rows for already-rendered new paths."""
@@ -250,8 +262,14 @@ class LocalExecutor:
         return t.sort_by([("mesh_id", "ascending"), ("view_index", "ascending")])
 
     # ------------------------------------------------------------------ downstream
-    def _downstream(self, plan: Plan, render_out: pa.Table, meshes_rows: list[dict], bars) -> int:
-        """Caption and embed one batch of views; commit everything; return the number of failed meshes."""
+    def _downstream(
+        self, plan: Plan, render_out: pa.Table, meshes_rows: list[dict], bars, computed: dict | None = None
+    ) -> int:
+        """Caption and embed one batch of views; commit everything; return the number of failed meshes.
+
+        ``computed`` holds stage outputs another engine already computed for this batch (``caption``,
+        ``embed_text``, ``embed_image:<role>``, as the stages return them); the stages are then not run
+        here, but the same meshes are selected and the same rows committed."""
         paths = {f.mesh_id: f.source_path for f in plan.files}
         tables: dict[str, pa.Table] = {}
         errors: list[pa.Table] = []
@@ -268,8 +286,13 @@ class LocalExecutor:
         cap_ids = [m for m in ids if m in plan.caption]
         captions = None
         if cap_ids:
-            with _Timer(self.seconds, "caption"):
-                out = self.caption(views.filter(pc.field("mesh_id").isin(cap_ids)))
+            out = self._stage_output(
+                "caption",
+                self.caption,
+                cap_ids,
+                lambda: views.filter(pc.field("mesh_id").isin(cap_ids)),
+                computed,
+            )
             captions, errs = split_errors(out, schemas.CAPTIONS, "caption", self.run_id, paths)
             errors.append(errs)
             failed |= set(errs.column("mesh_id").to_pylist())
@@ -279,17 +302,11 @@ class LocalExecutor:
 
         txt_ids = [m for m in ids if m in plan.embed_text and m not in failed]
         if txt_ids:
-            src = captions.filter(pc.field("mesh_id").isin(txt_ids)) if captions is not None else None
-            stored = [
-                m for m in txt_ids if captions is None or m not in set(captions.column("mesh_id").to_pylist())
-            ]
-            if stored:
-                more = self._stored_captions(stored)
-                src = more if src is None else pa.concat_tables([src, more])
-            with _Timer(self.seconds, "embed_text"):
-                out = self.text(src)
+            out = self._stage_output(
+                "embed_text", self.text, txt_ids, lambda: self._text_input(captions, txt_ids), computed
+            )
             emb, errs = split_errors(
-                out, schemas.embedding_schema(self.text.model.dim), "embed_text", self.run_id, paths
+                out, schemas.embedding_schema(_vector_dim(out)), "embed_text", self.run_id, paths
             )
             errors.append(errs)
             failed |= set(errs.column("mesh_id").to_pylist())
@@ -301,10 +318,15 @@ class LocalExecutor:
             img_ids = [m for m in ids if m in plan.embed_image.get(role, ()) and m not in failed]
             if not img_ids:
                 continue
-            with _Timer(self.seconds, "embed_image"):
-                out = stage(views.filter(pc.field("mesh_id").isin(img_ids)))
+            out = self._stage_output(
+                f"embed_image:{role}",
+                stage,
+                img_ids,
+                lambda ids=img_ids: views.filter(pc.field("mesh_id").isin(ids)),
+                computed,
+            )
             emb, errs = split_errors(
-                out, schemas.embedding_schema(stage.model.dim), "embed_image", self.run_id, paths
+                out, schemas.embedding_schema(_vector_dim(out)), "embed_image", self.run_id, paths
             )
             errors.append(errs)
             failed |= set(errs.column("mesh_id").to_pylist())
@@ -321,9 +343,35 @@ class LocalExecutor:
             self.store.commit(tables, self.run_id)
         return len(failed)
 
+    def _stage_output(self, key: str, stage, ids: list[str], make_input, computed: dict | None) -> pa.Table:
+        """``stage(make_input())``, timed; or the rows of ``ids`` in ``computed[key]`` (another engine's)."""
+        if computed is None:
+            with _Timer(self.seconds, key.split(":")[0]):
+                return stage(make_input())
+        out = computed[key].filter(pc.field("mesh_id").isin(ids))
+        missing = set(ids) - set(out.column("mesh_id").to_pylist())
+        if missing:
+            raise RuntimeError(f"{key}: no computed rows for {len(missing)} mesh(es), e.g. {min(missing)}")
+        return out
+
+    def _text_input(self, captions: pa.Table | None, txt_ids: list[str]) -> pa.Table:
+        """Captions to embed: this batch's, plus stored ones for meshes not captioned in this batch."""
+        src = captions.filter(pc.field("mesh_id").isin(txt_ids)) if captions is not None else None
+        done = set(captions.column("mesh_id").to_pylist()) if captions is not None else set()
+        stored = [m for m in txt_ids if m not in done]
+        if stored:
+            more = self._stored_captions(stored)
+            src = more if src is None else pa.concat_tables([src, more])
+        return src
+
     def _stored_captions(self, mesh_ids: list[str]) -> pa.Table:
         flt = pc.field("mesh_id").isin(mesh_ids) & (pc.field("fingerprint") == self.fps["caption"])
         return self.store.read_latest("captions", filter=flt)
+
+
+def _vector_dim(stage_out: pa.Table) -> int:
+    """Vector width of an embedding stage's output (its schema fixes it; no model needed)."""
+    return stage_out.schema.field("embedding").type.list_size
 
 
 def run_onboarding(

@@ -44,3 +44,19 @@ def offline_models():
         "text_encoder": create_model("text_encoder", p.text_encoder),
         "view_encoder": create_model("view_encoder", p.view_encoder),
     }
+
+
+@pytest.fixture(scope="session")
+def tiny_paper_models(tmp_path_factory) -> dict[str, str]:
+    """Tiny random LLaVA, CLIP and DINOv2 saved to disk: role -> local dir, for ``--model ROLE=DIR``."""
+    pytest.importorskip("transformers")
+    import tiny_models
+
+    root = tmp_path_factory.mktemp("tiny_hf")
+    clip = str(tiny_models.build_clip(root / "clip"))
+    return {
+        "captioner": str(tiny_models.build_llava(root / "llava")),
+        "text_encoder": clip,
+        "clip_image_encoder": clip,
+        "view_encoder": str(tiny_models.build_dinov2(root / "dinov2")),
+    }

@@ -31,6 +31,7 @@ class CaptionStage:
     def __call__(self, views: pa.Table) -> pa.Table:
         from pipeline.render import decode_png
 
+        model = self.model  # a model that cannot load ends the run (ModelLoadError), it is no mesh's fault
         items = views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
         rows: list[dict] = []
         by_mesh: dict[str, list[dict]] = {}
@@ -39,7 +40,7 @@ class CaptionStage:
         for mesh_id, its in by_mesh.items():
             base = {"mesh_id": mesh_id, "fingerprint": self.fingerprint, "run_id": self.run_id}
             try:
-                texts = self.model.caption([decode_png(it["image"]) for it in its], self.cfg.prompt)
+                texts = model.caption([decode_png(it["image"]) for it in its], self.cfg.prompt)
             except Exception as exc:  # a failing mesh becomes an errors row
                 rows.append(error_row(CAPTION_OUT, base, exc))
                 continue
