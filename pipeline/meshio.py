@@ -31,6 +31,9 @@ def load_mesh(
     """Load ``path``; raise :class:`MeshError` with a one-line reason for unusable meshes."""
     import trimesh
 
+    declared = quick_face_count(path, fmt)
+    if declared is not None and declared > max_faces:
+        raise MeshError(f"too many faces: {declared:,} > --max-faces {max_faces:,}")
     try:
         loaded = trimesh.load(path, file_type=fmt, process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for corrupt files
@@ -80,6 +83,41 @@ def load_mesh(
         scale_to_unit=scale,
         sample_points=pts,
     )
+
+
+def quick_face_count(path: str, fmt: str) -> int | None:
+    """Face count from the file header (PLY, OFF, binary STL) or a byte scan (OBJ), without parsing.
+
+    Lets a 5M-face mesh fail in milliseconds instead of spending the render timeout on parsing it.
+    Returns ``None`` when the count cannot be read cheaply (the full load checks again).
+    """
+    try:
+        with open(path, "rb") as fh:
+            if fmt == "ply":
+                for _ in range(200):
+                    parts = fh.readline().split()
+                    if parts[:2] == [b"element", b"face"] and len(parts) == 3:
+                        return int(parts[2])
+                    if not parts or parts[0] == b"end_header":
+                        return None
+            elif fmt == "off":
+                lines = [ln for ln in (fh.readline() for _ in range(50)) if ln.strip() and not ln.startswith(b"#")]
+                head = lines[0].split()
+                counts = head[1:] if head[0].upper().endswith(b"OFF") and len(head) > 1 else lines[1].split()
+                return int(counts[1])
+            elif fmt == "stl":
+                head = fh.read(84)
+                if len(head) == 84 and not head[:5].lower() == b"solid":
+                    return int.from_bytes(head[80:84], "little")
+            elif fmt == "obj":
+                n, tail = 0, b"\n"
+                while chunk := fh.read(1 << 24):
+                    n += (tail + chunk).count(b"\nf ")
+                    tail = chunk[-2:]
+                return n
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
 
 
 def _up_rotation(fmt: str, up: str) -> np.ndarray:

@@ -35,6 +35,10 @@ def _write_bad_library(lib: Path) -> dict[str, str]:
     )
     (lib / "notex" / "model.mtl").write_text("newmtl m\nmap_Kd missing_texture.png \n")
     (lib / "nomtl.obj").write_text("mtllib nowhere.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (lib / "five_million.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 2500000\nproperty float x\nproperty float y\n"
+        b"property float z\nelement face 5000000\nproperty list uchar int vertex_indices\nend_header\n"
+    )
     import trimesh
 
     trimesh.creation.icosphere(subdivisions=6).export(lib / "too_big.stl")  # 81,920 faces
@@ -47,6 +51,7 @@ def _write_bad_library(lib: Path) -> dict[str, str]:
         "notex/model.obj": "missing texture",
         "nomtl.obj": "missing material file",
         "too_big.stl": "too many faces",
+        "five_million.ply": "too many faces: 5,000,000",
     }
 
 
