@@ -62,7 +62,7 @@ def look_at_pose(direction: np.ndarray, distance: float, up=(0.0, 0.0, 1.0)) -> 
 
 
 def framed_pose(
-    points: np.ndarray, direction: np.ndarray, yfov_deg: float, fill: float, iterations: int = 4
+    points: np.ndarray, direction: np.ndarray, yfov_deg: float, fill: float, iterations: int = 12
 ) -> np.ndarray:
     """Camera-to-world pose looking along ``-direction`` with the object centred and filling ``fill`` of the frame.
 
@@ -80,7 +80,7 @@ def framed_pose(
         depth = dist - rel @ direction
         x, y = (rel @ right) / (depth * t), (rel @ up) / (depth * t)
         cx, cy = (x.min() + x.max()) / 2.0, (y.min() + y.max()) / 2.0
-        target = target + (right * cx + up * cy) * dist * t
+        target = target + 0.6 * (right * cx + up * cy) * dist * t  # damped: the refit moves the frame too
     rel = points - target
     dist = fit_distance(rel, direction, yfov_deg, fill)
     pose = axes.copy()
