@@ -1,0 +1,319 @@
+"""``python -m pipeline.evaluate --store STORE --queries QUERIES --out REPORT_DIR``: metrics, sweeps, report.
+
+See ``docs/evaluation.md`` for every option and the metric definitions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from pipeline.cli_common import add_model_args, fail, model_overrides
+
+OFFLINE_NOTE = (
+    "Offline profile: attribute captioner + MiniLM text encoder + classical image descriptor, no downloaded "
+    "weights. These numbers measure this build's offline models, not the paper's LLaVA/CLIP/DINOv2/"
+    "GroundedSAM pipeline; reproducing the paper's numbers needs `--profile paper` with the real weights."
+)
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    """``0.1,0.2`` or ``START:STOP:STEP`` (inclusive)."""
+    if ":" in text:
+        a, b, s = (float(x) for x in text.split(":"))
+        n = int(round((b - a) / s)) + 1
+        return tuple(round(a + i * s, 6) for i in range(n))
+    return tuple(float(x) for x in text.split(",") if x.strip())
+
+
+def _ints(text: str) -> tuple[int, ...]:
+    return tuple(int(round(x)) for x in _floats(text))
+
+
+def _words(text: str) -> tuple[str, ...]:
+    return tuple(w.strip() for w in text.split(",") if w.strip())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN
+    from pipeline.evaluate.metrics import MAP_NORMALISERS, TIE_POLICIES
+    from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE
+
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.evaluate",
+        description="Evaluate retrieval on a query set: the paper's metrics, tau/top-k/mode/ROI sweeps, "
+        "prompt styles, and a report (metrics.json, report.md, report.html, plots, failure gallery). "
+        "`python -m pipeline.evaluate synth --help` writes a synthetic query set.",
+    )
+    p.add_argument("--store", required=True, metavar="STORE_DIR", help="onboarded store to query")
+    src = p.add_argument_group("queries")
+    src.add_argument("--queries", metavar="PATH", help="JSONL/JSON/CSV query file or BOP dataset folder")
+    src.add_argument(
+        "--synthetic",
+        type=int,
+        metavar="N",
+        help="generate N synthetic queries per store mesh into OUT/synthetic",
+    )
+    src.add_argument("--seed", type=int, default=0, help="seed of the synthetic generator (default: 0)")
+    src.add_argument(
+        "--photo-dir",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="real photos to crop synthetic backgrounds from (repeatable)",
+    )
+    src.add_argument(
+        "--prompt-template",
+        default=DEFAULT_PROMPT_TEMPLATE,
+        help="synthetic/BOP prompt; {name} = mesh name without its id (default: %(default)r)",
+    )
+    src.add_argument("--limit", type=int, help="evaluate only the first N queries")
+    src.add_argument("--bop-objects", metavar="JSON", help="BOP object id -> mesh (and prompt, label) map")
+    src.add_argument("--bop-min-visib", type=float, default=0.1, help="skip BOP instances less visible")
+    src.add_argument("--bop-max-per-object", type=int, help="at most N BOP queries per object id")
+    rel = p.add_argument_group("relevance and metrics")
+    rel.add_argument(
+        "--class-pattern",
+        default=DEFAULT_CLASS_PATTERN,
+        help="regex whose first group is a mesh's class label (default: %(default)r; '' = the mesh name)",
+    )
+    rel.add_argument(
+        "--classes", metavar="FILE", help="JSON/CSV mesh -> class label map (wins over the pattern)"
+    )
+    rel.add_argument(
+        "--ties",
+        default="pessimistic",
+        choices=TIE_POLICIES,
+        help="order of equal scores (default: %(default)s)",
+    )
+    rel.add_argument(
+        "--map-norm",
+        default="min",
+        choices=MAP_NORMALISERS,
+        help="AP@k normaliser: min(k,R), R, or hits in the top k (default: %(default)s)",
+    )
+    add_model_args(p)
+    p.add_argument("--device", help="torch device for the paper profile (default: cuda when available)")
+    base = p.add_argument_group("base setting")
+    base.add_argument("--mode", default="two-stage", choices=["two-stage", "text-only", "image-only"])
+    base.add_argument(
+        "--tau", type=float, help="stage-1 threshold (default: the retriever's, the paper's 0.37)"
+    )
+    base.add_argument(
+        "--fallback-k", type=int, default=10, help="stage-1 top-k when none passes tau (default: 10)"
+    )
+    base.add_argument("--roi", default="segm", choices=["segm", "bbox"], help="ROI variant (default: segm)")
+    sw = p.add_argument_group("sweeps")
+    sw.add_argument(
+        "--taus", type=_floats, default=None, help="tau values, e.g. 0.10:0.65:0.05 (the default)"
+    )
+    sw.add_argument("--top-ks", type=_ints, default=None, help="fallback top-k values (default: 5:40:5)")
+    sw.add_argument("--modes", type=_words, default=None, help="modes to compare (default: all three)")
+    sw.add_argument("--rois", type=_words, default=None, help="ROI variants to compare (default: segm,bbox)")
+    sw.add_argument("--no-sweeps", action="store_true", help="score the base setting only")
+    sw.add_argument(
+        "--style-store",
+        action="append",
+        default=[],
+        metavar="STYLE=STORE",
+        help="a store onboarded with another prompt style, compared at the base setting (repeatable)",
+    )
+    sw.add_argument(
+        "--onboard-styles",
+        type=_words,
+        metavar="STYLE,...",
+        help="onboard --library once per prompt style into --styles-dir (if missing) and compare",
+    )
+    sw.add_argument("--library", metavar="DIR", help="library folder for --onboard-styles")
+    sw.add_argument(
+        "--styles-dir", metavar="DIR", help="where --onboard-styles puts its stores (default: OUT/stores)"
+    )
+    out = p.add_argument_group("report")
+    out.add_argument("--out", required=True, metavar="REPORT_DIR", help="report directory (created)")
+    out.add_argument("--gallery", type=int, default=24, help="failures shown in the gallery (default: 24)")
+    out.add_argument("--no-plots", action="store_true", help="skip the matplotlib figures")
+    out.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["synth"]:
+        from pipeline.evaluate.synth_cli import main as synth_main
+
+        return synth_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    if not args.queries and not args.synthetic:
+        return fail("give --queries PATH or --synthetic N")
+    from pipeline.evaluate.datasets import QueryFileError
+    from pipeline.models.registry import ModelLoadError
+    from pipeline.store import StoreError
+
+    try:
+        return _run(args, argv)
+    except (StoreError, ModelLoadError, QueryFileError, ValueError, FileNotFoundError) as exc:
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        return fail("interrupted", 130)
+
+
+def _run(args: argparse.Namespace, argv: list[str]) -> int:
+    import json
+    from datetime import datetime, timezone
+
+    from pipeline.evaluate.engine import Engine, Setting
+    from pipeline.evaluate.library import Library, load_class_map, read_store_meshes
+    from pipeline.evaluate.report import write_report
+    from pipeline.evaluate.sweep import MetricOptions, SweepPlan, evaluate, evaluate_styles
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    class_map = load_class_map(args.classes) if args.classes else {}
+    pattern = args.class_pattern or None
+    library = Library(read_store_meshes(args.store), pattern, class_map)
+    if not len(library):
+        return fail(f"store {args.store} has no active meshes")
+    queries, source = _queries(args, library, out)
+    if args.limit:
+        queries = queries[: args.limit]
+    if not queries:
+        return fail(f"no queries in {source}")
+    overrides = model_overrides(args)
+    progress = not args.no_progress
+    say = print if progress else (lambda *a, **k: None)
+    say(f"{len(queries)} queries, {len(library)} library meshes; loading the {args.profile} models")
+    engine = Engine.open(args.store, args.profile, overrides, args.device)
+    base = Setting(args.mode, args.tau, args.fallback_k, args.roi)
+    plan = SweepPlan(base=base)
+    for name in ("taus", "top_ks", "modes", "rois"):
+        if getattr(args, name):
+            setattr(plan, name, getattr(args, name))
+    opts = MetricOptions(args.ties, args.map_norm)
+    run = evaluate(engine, queries, library, plan, opts, sweeps=not args.no_sweeps, progress=_bar(progress))
+
+    styles = _style_stores(args, out)
+    style_results = None
+    if styles:
+        engines = {}
+        for style, store in styles.items():
+            lib = Library(read_store_meshes(store), pattern, class_map)
+            engines[style] = (Engine.open(store, args.profile, overrides, args.device), lib)
+        style_results = evaluate_styles(engines, queries, base, opts)
+        for style, store in styles.items():
+            style_results[style]["store"] = store
+
+    summary = run.summary()
+    doc = {
+        "config": {
+            "command": "python -m pipeline.evaluate " + shlex.join(argv),
+            "store": str(args.store),
+            "profile": args.profile,
+            "model_overrides": overrides,
+            "queries": source,
+            "ties": opts.ties,
+            "map_normaliser": opts.map_normaliser,
+            "class_pattern": pattern,
+            "classes": args.classes,
+            "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "note": OFFLINE_NOTE if args.profile == "offline" else None,
+        },
+        "n_queries": len(queries),
+        "n_evaluated": len(run.records),
+        "unresolved": run.unresolved,
+        "failed": run.failed,
+        "library": {"n_meshes": len(library), "n_classes": len(set(library.labels.values()))},
+        **summary,
+        "prompt_styles": style_results,
+    }
+    paths = write_report(doc, run.records, out, args.store, library, args.gallery, plots=not args.no_plots)
+    inst = doc["base"]["instance"]
+    print(
+        "instance: "
+        + ", ".join(
+            f"{k} {inst.get(k, float('nan')):.3f}" for k in ("mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR")
+        )
+        + f" (n={inst.get('n', 0)})"
+    )
+    if doc["base"].get("class"):
+        cls = doc["base"]["class"]
+        print(
+            "class:    "
+            + ", ".join(
+                f"{k} {cls.get(k, float('nan')):.3f}" for k in ("NN", "FT", "ST", "F", "DCG", "ANMRR")
+            )
+        )
+    if run.unresolved or run.failed:
+        print(
+            f"warning: {len(run.unresolved)} queries name no library mesh, {len(run.failed)} failed "
+            f"(listed in {paths['metrics']})",
+            file=sys.stderr,
+        )
+    print(f"report: {paths['html']} ({paths['metrics'].name}, {paths['markdown'].name})")
+    json.dumps(doc["base"], default=str)  # fail here, not in a reader, if something is not serialisable
+    return 0
+
+
+def _queries(args, library, out: Path):
+    from pipeline.evaluate.datasets import load_queries
+
+    if args.synthetic:
+        from pipeline.evaluate.synth import SynthConfig, generate
+
+        cfg = SynthConfig(
+            per_mesh=args.synthetic,
+            seed=args.seed,
+            photo_dirs=tuple(args.photo_dir),
+            prompt_template=args.prompt_template,
+            class_pattern=args.class_pattern or None,
+        )
+        target = out / "synthetic"
+        return generate(library.meshes, target, cfg, progress=not args.no_progress), str(
+            target / "queries.jsonl"
+        )
+    bop = {
+        "library": library,
+        "objects": args.bop_objects,
+        "prompt_template": args.prompt_template,
+        "min_visib": args.bop_min_visib,
+        "max_per_object": args.bop_max_per_object,
+    }
+    return load_queries(args.queries, **bop), str(args.queries)
+
+
+def _style_stores(args, out: Path) -> dict[str, str]:
+    styles: dict[str, str] = {}
+    for item in args.style_store:
+        style, sep, store = item.partition("=")
+        if not sep or not style or not store:
+            raise ValueError(f"--style-store expects STYLE=STORE_DIR, got {item!r}")
+        styles[style.strip()] = store.strip()
+    if args.onboard_styles:
+        if not args.library:
+            raise ValueError("--onboard-styles needs --library DIR (the library to onboard per style)")
+        from pipeline.config import OnboardConfig
+        from pipeline.executor import run_onboarding
+
+        root = Path(args.styles_dir or out / "stores")
+        for style in args.onboard_styles:
+            store = root / style
+            cfg = OnboardConfig(
+                profile=args.profile, model_overrides=model_overrides(args), prompt_style=style
+            )
+            summary = run_onboarding(args.library, str(store), cfg, progress=not args.no_progress)
+            print(f"prompt style {style}: " + summary.lines()[0])
+            styles[style] = str(store)
+    return styles
+
+
+def _bar(progress: bool):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return lambda it: tqdm(it, desc="queries", unit="query")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""End to end: onboard a tiny library, generate synthetic queries, evaluate with the real offline retriever."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from test_eval_synth import make_toy_library
+
+from pipeline.config import OnboardConfig
+from pipeline.evaluate.cli import main
+from pipeline.executor import run_onboarding
+
+
+@pytest.fixture(scope="module")
+def tiny_store(tmp_path_factory, offline_models):
+    root = tmp_path_factory.mktemp("e2e")
+    lib = make_toy_library(root / "lib")
+    store = root / "store"
+    run_onboarding(str(lib), str(store), OnboardConfig(workers=0), progress=False, models=offline_models)
+    return lib, store
+
+
+def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
+    _, store = tiny_store
+    queries = tmp_path / "queries"
+    assert (
+        main(
+            [
+                "synth",
+                "--store",
+                str(store),
+                "--out",
+                str(queries),
+                "--per-mesh",
+                "2",
+                "--size",
+                "200x150",
+                "--backgrounds",
+                "solid,gradient,noise",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    out = tmp_path / "report"
+    rc = main(
+        [
+            "--store",
+            str(store),
+            "--queries",
+            str(queries / "queries.jsonl"),
+            "--out",
+            str(out),
+            "--taus",
+            "0.3,0.6,0.9",
+            "--top-ks",
+            "1,5",
+            "--style-store",
+            f"attributes={store}",
+            "--gallery",
+            "3",
+            "--no-progress",
+        ]
+    )
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads((out / "metrics.json").read_text())
+    assert doc["n_queries"] == doc["n_evaluated"] == 6
+    assert doc["unresolved"] == [] and doc["failed"] == []
+    base = doc["base"]["instance"]
+    assert base["n"] == 6
+    assert base["top5"] == 1.0  # three models: the expected one is always within the candidates
+    assert 0.0 <= base["mAP@1"] <= base["mAP@3"] <= 1.0
+    assert doc["base"]["class"]["n"] == 6  # synthetic queries carry class labels
+    assert [r["setting"]["threshold"] for r in doc["sweeps"]["tau"]] == [0.3, 0.6, 0.9]
+    assert {r["setting"]["mode"] for r in doc["sweeps"]["mode"]} == {"two-stage", "text-only", "image-only"}
+    assert {r["setting"]["roi"] for r in doc["sweeps"]["roi"]} == {"segm", "bbox"}
+    assert doc["prompt_styles"]["attributes"]["instance"] == base
+    assert doc["timings"]["roi_embed_segm_ms"]["n"] == 6
+    for name in ("report.md", "report.html", "per_query.jsonl", "plots/tau_sweep.png"):
+        assert (out / name).is_file(), name
+    for g in doc["gallery"]:
+        assert (out / g["file"]).is_file()
+    assert "instance: mAP@1" in capsys.readouterr().out
+
+
+def test_missing_store_is_one_line(tmp_path, capsys):
+    rc = main(["--store", str(tmp_path / "nope"), "--synthetic", "1", "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1
+    assert main(["--store", str(tmp_path), "--out", str(tmp_path / "r")]) == 2  # no query source
