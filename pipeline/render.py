@@ -21,6 +21,9 @@ def setup_headless_gl() -> None:
         np.infty = np.inf  # pyrender still uses the alias removed in NumPy 2
 
 
+setup_headless_gl()  # before anything imports pyrender / PyOpenGL, which pick their platform at import
+
+
 @dataclass
 class RenderedView:
     view_index: int
