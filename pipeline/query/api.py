@@ -1,0 +1,317 @@
+"""The Python API of the query path; the CLI is a thin wrapper around it.
+
+>>> from pipeline.query import Retriever
+>>> with Retriever.open("data/store", profile="offline") as r:
+...     result = r.query("photo.jpg", "the yellow mustard bottle", box=(120, 40, 260, 300))
+...     print(result.best.name)
+
+``make_roi`` -> ``embed`` -> ``rank`` are the three steps of ``query``; ``rank`` calls no model, so sweeps
+over tau, fallback-k, prompt weight or mode reuse one embedding.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+import numpy as np
+
+from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
+from pipeline.query.errors import QueryError
+from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
+from pipeline.query.library import StoreTables, check_models, latest_onboarding
+from pipeline.query.results import Candidate, QueryEmbedding, QueryResult
+from pipeline.query.roi import Roi, make_roi
+from pipeline.query.settings import MODES, QuerySettings, settings_for
+from pipeline.query.stage1 import TextFilter
+from pipeline.query.stage2 import ViewReranker
+
+#: roles loaded on first use only (a query with --box/--mask never loads the detector)
+LAZY_ROLES = ("detector", "segmenter")
+
+
+class Retriever:
+    """An opened store plus the profile's query models, loaded once. Use :meth:`open`."""
+
+    def __init__(
+        self, store, profile, tables: StoreTables, settings: QuerySettings, *, device, models, threads
+    ):
+        self.store = store
+        self.profile = profile
+        self.tables = tables
+        self.settings = settings
+        self.device = device
+        self.strategy = strategy_for(profile.clip_image_encoder is not None)
+        self.load_seconds: dict[str, float] = {}
+        self._models: dict[str, object] = dict(models or {})
+        self.text_filter = TextFilter(tables.captions, threads)
+        self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
+        m = tables.meshes
+        self._mesh_id = m.column("mesh_id").to_pylist()
+        self._name = m.column("name").to_pylist()
+        self._path = m.column("source_path").to_pylist()
+        self._root = m.column("library_root").to_pylist()
+
+    # ------------------------------------------------------------------ opening
+    @classmethod
+    def open(
+        cls,
+        store_path,
+        profile: str = "offline",
+        model_overrides: dict[str, str] | None = None,
+        device: str | None = None,
+        models: dict[str, object] | None = None,
+        *,
+        settings: QuerySettings | None = None,
+        use_cache: bool = True,
+        threads: int | None = None,
+        settings_changes: dict | None = None,
+        preload: bool = True,
+    ) -> Retriever:
+        """Open ``store_path`` for queries with ``profile`` ("auto": the profile the store was onboarded with).
+
+        ``models`` injects ready adapters by role (tests, notebooks); other roles are built through
+        :func:`pipeline.models.registry.create_model` from the profile (detector and segmenter on first use).
+        ``settings`` / ``settings_changes`` replace / adjust the profile's query defaults
+        (:mod:`pipeline.query.settings`); ``use_cache`` reads and writes ``STORE/_cache/query``;
+        ``preload=False`` defers every model to its first use.
+        """
+        from pipeline.profiles import PROFILES, get_profile
+        from pipeline.store import Store
+
+        store = Store.open(store_path)
+        try:
+            onboarding = latest_onboarding(store)
+            if profile in (None, "", "auto"):
+                profile = onboarding.profile if onboarding.profile in PROFILES else "offline"
+            try:
+                prof = get_profile(profile, model_overrides)
+            except ValueError as exc:
+                raise QueryError(str(exc)) from None
+            settings = (settings or settings_for(prof.name)).with_changes(**(settings_changes or {}))
+            strategy = strategy_for(prof.clip_image_encoder is not None)
+            # the caption and view spaces must match even for roles this query does not load
+            roles = {*strategy.roles(settings.prompt_weight > 0), "text_encoder", "view_encoder"}
+            check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
+            tables = StoreTables(store, onboarding, use_cache=use_cache)
+            r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
+            if preload:
+                r.load_models(r.required_roles())
+            return r
+        except BaseException:
+            store.close()
+            raise
+
+    def __enter__(self) -> Retriever:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.text_filter.close()
+        self.tables.con.close()
+        self.store.close()
+
+    # ------------------------------------------------------------------ models
+    def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
+        """Roles a query needs: the embedding roles, plus what finds the object when it comes from
+        ``source`` ("detector": detector and segmenter; "box": segmenter; "mask" or None: nothing more)."""
+        roles = list(self.strategy.roles(self.settings.prompt_weight > 0))
+        if source == "detector":
+            roles.append("detector")
+        if source in ("detector", "box") and roi_mode == "segm":
+            roles.append("segmenter")
+        return [r for r in roles if r in self._models or getattr(self.profile, r, None) is not None]
+
+    def load_models(self, roles: Iterable[str]) -> None:
+        """Build the adapters of ``roles`` now (not yet loaded ones only)."""
+        for role in roles:
+            self.model(role)
+
+    def model(self, role: str):
+        """The adapter of ``role`` (built on first use), or ``None`` when the profile has no such role."""
+        if role in self._models:
+            return self._models[role]
+        spec = getattr(self.profile, role, None)
+        if spec is None:
+            return None
+        from pipeline.models.registry import create_model
+
+        extra = {} if self.device in (None, "", "auto") else {"device": self.device}
+        t0 = time.perf_counter()
+        adapter = create_model(role, spec, **extra)
+        self.load_seconds[role] = time.perf_counter() - t0
+        self._models[role] = adapter
+        return adapter
+
+    # ------------------------------------------------------------------ steps
+    def make_roi(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm") -> Roi:
+        """Validate the inputs and cut the prompted object out of ``image`` (path, PIL image or array)."""
+        s = self.settings
+        prompt = clean_prompt(prompt, s.max_prompt_chars)
+        photo = load_photo(image, max_side=s.max_side, min_side=s.min_side)
+        box_v = parse_box(box) if box is not None else None
+        mask_v = load_mask(mask, photo, s.min_roi_side) if mask is not None else None
+        roi = make_roi(
+            photo,
+            prompt,
+            box=box_v,
+            mask=mask_v,
+            roi_mode=roi_mode,
+            model=self.model,
+            background=s.background,
+            min_side=s.min_roi_side,
+            profile=self.profile.name,
+        )
+        roi.notes.extend([] if photo.scale == 1.0 else [f"image downscaled by {photo.scale:.3f}"])
+        roi.photo_source, roi.photo_size = photo.source, photo.original_size
+        return roi
+
+    def embed(self, roi: Roi, prompt: str) -> QueryEmbedding:
+        """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
+        prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
+        with_prompt = self.settings.prompt_weight > 0
+        return embed_roi(self.strategy, self.model, roi, prompt, with_prompt)
+
+    def rank(
+        self,
+        emb: QueryEmbedding,
+        mode: str = "two-stage",
+        threshold: float | None = None,
+        fallback_k: int = 10,
+        top: int = 5,
+        prompt_weight: float | None = None,
+    ) -> QueryResult:
+        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps)."""
+        if mode not in MODES:
+            raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        if int(top) < 1 or int(fallback_k) < 1:
+            raise QueryError("--top and --fallback-k must be at least 1")
+        tau = self.settings.threshold if threshold is None else float(threshold)
+        w = self.settings.prompt_weight if prompt_weight is None else float(prompt_weight)
+        if not 0.0 <= w <= 1.0:
+            raise QueryError(f"prompt weight must be within [0, 1], got {w}")
+        if w > 0 and emb.prompt_vec is None:
+            raise QueryError(
+                "this embedding has no prompt vector: open the Retriever with a prompt weight > 0"
+            )
+        timings: dict[str, float] = {}
+        try:
+            if mode == "image-only":
+                return self._rank_image_only(emb, top, tau, fallback_k, w, timings)
+            s1 = self.text_filter.run(
+                stage1_vector(emb, w),
+                None if mode == "text-only" else tau,
+                top if mode == "text-only" else fallback_k,
+            )
+            s2 = self.reranker.score(emb.image_space, s1.mesh_idx)
+        except ValueError as exc:  # vector widths that do not match the store
+            raise QueryError(
+                f"{exc}: the store was embedded with other models than this query uses"
+            ) from None
+        timings["stage1_ms"] = s1.seconds * 1000
+        timings["stage2_ms"] = s2.seconds * 1000
+        if mode == "text-only":
+            order = np.arange(len(s1.mesh_idx))
+            decided, used_fallback = "stage1", False
+        else:
+            order = np.lexsort((s1.mesh_idx, -s1.scores, -s2.scores))
+            decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
+        order = order[: int(top)]
+        cands = [
+            self._candidate(i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j])
+            for i, j in enumerate(order)
+        ]
+        return QueryResult(
+            cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w
+        )
+
+    def _rank_image_only(self, emb, top, tau, fallback_k, w, timings) -> QueryResult:
+        s2 = self.reranker.score(emb.image_space, None)
+        timings["stage1_ms"] = 0.0
+        timings["stage2_ms"] = s2.seconds * 1000
+        idx = np.arange(len(s2.scores))
+        order = np.lexsort((idx, -s2.scores))[: int(top)]
+        cands = [self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j]) for i, j in enumerate(order)]
+        return QueryResult(cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w)
+
+    def _candidate(self, rank, mesh_idx, text, image, view) -> Candidate:
+        j = int(mesh_idx)
+        ok = image is not None and np.isfinite(image)
+        return Candidate(
+            rank=rank,
+            mesh_id=self._mesh_id[j],
+            name=self._name[j],
+            source_path=self._path[j],
+            text_score=None if text is None else round(float(text), 6),
+            image_score=round(float(image), 6) if ok else None,
+            best_view=int(view) if ok and view >= 0 else None,
+            library_root=self._root[j],
+        )
+
+    def query(
+        self,
+        image,
+        prompt: str,
+        box=None,
+        mask=None,
+        roi_mode: str = "segm",
+        mode: str = "two-stage",
+        threshold: float | None = None,
+        fallback_k: int = 10,
+        top: int = 5,
+        prompt_weight: float | None = None,
+    ) -> QueryResult:
+        """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
+        if mode not in MODES:
+            raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        loaded = sum(self.load_seconds.values())
+        t0 = time.perf_counter()
+        roi = self.make_roi(image, prompt, box=box, mask=mask, roi_mode=roi_mode)
+        t1 = time.perf_counter()
+        load_roi = sum(self.load_seconds.values()) - loaded
+        emb = self.embed(roi, prompt)
+        t2 = time.perf_counter()
+        load_emb = sum(self.load_seconds.values()) - loaded - load_roi
+        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight)
+        t3 = time.perf_counter()
+        result.timings = {
+            "model_load_ms": (load_roi + load_emb) * 1000,
+            "roi_ms": (t1 - t0 - load_roi) * 1000,
+            "embed_ms": (t2 - t1 - load_emb) * 1000,
+            **result.timings,
+            "total_ms": (t3 - t0) * 1000,
+        }
+        result.query = {
+            "image": roi.photo_source,
+            "image_size": list(roi.photo_size),
+            "prompt": clean_prompt(prompt, self.settings.max_prompt_chars),
+            "profile": self.profile.name,
+            "roi": roi.describe(),
+            "embedding": emb.describe(),
+        }
+        result.roi = roi  # for --explain; not serialised
+        return result
+
+    # ------------------------------------------------------------------ store lookups
+    @property
+    def n_meshes(self) -> int:
+        return len(self._mesh_id)
+
+    def mesh(self, mesh_id: str) -> dict:
+        """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
+        j = self._mesh_id.index(mesh_id)
+        return self.tables.meshes.slice(j, 1).to_pylist()[0]
+
+    def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
+        """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
+        from pipeline.db import load_sql
+
+        fps = self.tables.onboarding.fingerprints
+        params = {
+            "mesh_ids": list(mesh_ids),
+            "render_fingerprint": fps["render"],
+            "caption_fingerprint": fps["caption"],
+        }
+        return self.tables.con.sql(load_sql("candidate_views"), params=params).to_arrow_table().to_pylist()

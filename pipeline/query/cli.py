@@ -1,0 +1,250 @@
+"""``python -m pipeline.query --store STORE --image PHOTO --prompt TEXT``: rank the store's CAD models."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from pipeline.cli_common import fail
+
+ROLES = "captioner, text_encoder, view_encoder, clip_image_encoder, detector, segmenter"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m pipeline.query",
+        description="Find the CAD model in an onboarded store that matches the object a prompt names in a photo.",
+    )
+    p.add_argument("--store", required=True, metavar="STORE_DIR", help="store written by pipeline.onboard")
+    what = p.add_argument_group("what to look for (one photo, or a batch)")
+    what.add_argument(
+        "--image", metavar="PHOTO", help="photo (any PIL format; RGBA/16-bit/gray are converted)"
+    )
+    what.add_argument("--prompt", help='the object to find, e.g. "the yellow mustard bottle"')
+    what.add_argument("--box", metavar="X0,Y0,X1,Y1", help="object box in photo pixels (skips detection)")
+    what.add_argument("--mask", metavar="MASK.png", help="object mask of the photo's size (skips detection)")
+    what.add_argument(
+        "--queries",
+        metavar="FILE.jsonl",
+        help='batch: one {"image", "prompt", ["box"], ["mask"], ["id"]} object per line; JSONL out',
+    )
+    what.add_argument("--output", metavar="OUT.jsonl", help="batch output (default: stdout)")
+
+    how = p.add_argument_group("how to rank")
+    how.add_argument(
+        "--profile",
+        default="auto",
+        choices=["auto", "offline", "paper"],
+        help="model profile (default auto: the profile the store was onboarded with)",
+    )
+    how.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="ROLE=ID_OR_DIR",
+        help=f"override a role's model; roles: {ROLES}",
+    )
+    how.add_argument(
+        "--roi",
+        default="segm",
+        choices=["segm", "bbox"],
+        help="segm: object on gray (paper); bbox: raw box crop",
+    )
+    how.add_argument(
+        "--mode",
+        default="two-stage",
+        choices=["two-stage", "text-only", "image-only"],
+        help="paper ablations",
+    )
+    how.add_argument(
+        "--threshold",
+        type=float,
+        metavar="TAU",
+        help="stage-1 tau (paper profile: 0.37; offline: see docs/query.md)",
+    )
+    how.add_argument(
+        "--fallback-k",
+        type=int,
+        default=10,
+        metavar="K",
+        help="stage-1 top-k when nothing passes tau (default 10; reference scripts: 15)",
+    )
+    how.add_argument(
+        "--prompt-weight",
+        type=float,
+        metavar="W",
+        help="weight of the prompt in the stage-1 query vector (offline default 0.5, paper 0)",
+    )
+    how.add_argument("--top", type=int, default=5, metavar="N", help="how many models to list (default 5)")
+    how.add_argument(
+        "--device", default=None, help="torch device for models and stage 2 (default: cuda if available)"
+    )
+    how.add_argument(
+        "--threads", type=int, default=None, help="DuckDB threads for stage 1 (default: all cores)"
+    )
+    how.add_argument(
+        "--no-cache", action="store_true", help="do not read or write the embedding cache under STORE/_cache"
+    )
+
+    out = p.add_argument_group("output")
+    out.add_argument("--json", action="store_true", help="print the full result as JSON")
+    out.add_argument(
+        "--explain", metavar="OUT.png", help="write a contact sheet: the ROI and each candidate's best view"
+    )
+    out.add_argument(
+        "--export", metavar="DIR", help="copy the best model's mesh with its material and texture files"
+    )
+    out.add_argument("--no-progress", action="store_true", help="no progress bar in batch mode")
+    return p
+
+
+def _check_args(args: argparse.Namespace) -> str | None:
+    if args.queries:
+        if args.image or args.prompt or args.box or args.mask:
+            return "--queries takes image, prompt, box and mask from the file; drop --image/--prompt/--box/--mask"
+        if args.explain or args.export:
+            return "--explain and --export apply to single queries (--image/--prompt), not to --queries"
+        return None
+    if not args.image or args.prompt is None:
+        return "give --image PHOTO and --prompt TEXT (or --queries FILE.jsonl)"
+    if args.output:
+        return "--output is for --queries batches; single queries print to stdout"
+    return None
+
+
+def _prevalidate(args: argparse.Namespace) -> None:
+    """Reject bad photos, prompts, boxes and masks before any model is loaded."""
+    from pipeline.query.images import box_to_working, clean_prompt, load_mask, load_photo, parse_box
+    from pipeline.query.settings import QuerySettings
+
+    limits = QuerySettings(threshold=0.0)
+    clean_prompt(args.prompt, limits.max_prompt_chars)
+    photo = load_photo(args.image, max_side=limits.max_side, min_side=limits.min_side)
+    if args.box and not args.mask:
+        box_to_working(parse_box(args.box), photo, limits.min_roi_side)
+    if args.mask:
+        load_mask(args.mask, photo, limits.min_roi_side)
+
+
+def _quiet_model_loading() -> None:
+    import os
+
+    os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
+    os.environ.setdefault("TRANSFORMERS_VERBOSITY", "error")
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    problem = _check_args(args)
+    if problem:
+        return fail(problem)
+    from pipeline.models.registry import ModelLoadError
+    from pipeline.query.errors import QueryError
+    from pipeline.store import StoreError
+
+    try:
+        if not args.queries:
+            _prevalidate(args)
+        return _run(args)
+    except (QueryError, StoreError, ModelLoadError) as exc:
+        return fail(str(exc))
+    except ValueError as exc:  # --model syntax, unknown roles
+        return fail(str(exc))
+    except KeyboardInterrupt:
+        return fail("interrupted", 130)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import json
+
+    from pipeline.profiles import parse_overrides
+    from pipeline.query.api import Retriever
+    from pipeline.query.errors import QueryError
+
+    _quiet_model_loading()
+    settings_changes = {"prompt_weight": args.prompt_weight}
+    retriever = Retriever.open(
+        args.store,
+        profile=args.profile,
+        model_overrides=parse_overrides(args.model),
+        device=args.device,
+        use_cache=not args.no_cache,
+        threads=args.threads,
+        settings_changes=settings_changes,
+        preload=False,
+    )
+    rank_args = {
+        "roi_mode": args.roi,
+        "mode": args.mode,
+        "threshold": args.threshold,
+        "fallback_k": args.fallback_k,
+        "top": args.top,
+    }
+    with retriever:
+        if args.queries:
+            retriever.load_models(retriever.required_roles())
+            return _batch(retriever, args, rank_args)
+        source = "mask" if args.mask else "box" if args.box else "detector"
+        if source == "detector" and retriever.profile.detector is None:
+            raise QueryError(
+                f"the {retriever.profile.name} profile has no object detector: pass --box x0,y0,x1,y1 or "
+                "--mask MASK.png (or query with --profile paper)"
+            )
+        retriever.load_models(retriever.required_roles(source, args.roi))
+        result = retriever.query(args.image, args.prompt, box=args.box, mask=args.mask, **rank_args)
+        result.timings["model_load_ms"] = sum(retriever.load_seconds.values()) * 1000
+        extra = _side_outputs(retriever, result, args)
+        if args.json:
+            print(json.dumps({**result.to_dict(), **extra}, indent=2))
+        else:
+            from pipeline.query.output import format_result
+
+            print(format_result(result))
+            for key, value in extra.items():
+                print(f"{key}: {value}")
+    return 0
+
+
+def _side_outputs(retriever, result, args) -> dict:
+    extra: dict = {}
+    if args.explain:
+        from pipeline.query.explain import write_explain
+
+        views = retriever.candidate_views([c.mesh_id for c in result.candidates])
+        extra["explain"] = str(write_explain(result, views, args.explain))
+    if args.export:
+        from pipeline.query.errors import QueryError
+        from pipeline.query.export import export_mesh
+
+        if result.best is None:
+            raise QueryError("no model to export: the query matched nothing")
+        folder, files, unchanged = export_mesh(retriever.mesh(result.best.mesh_id), args.export)
+        extra["export"] = str(folder)
+        extra["exported_files"] = [str(f) for f in files]
+        if not unchanged:
+            print(f"warning: {files[0]} changed since onboarding; re-run onboarding", file=sys.stderr)
+    return extra
+
+
+def _batch(retriever, args, rank_args) -> int:
+    from pipeline.query.batch import run_batch
+
+    if args.output:
+        try:
+            out = open(args.output, "w", encoding="utf-8")  # noqa: SIM115 - closed below
+        except OSError as exc:
+            return fail(f"cannot write {args.output}: {exc.strerror}")
+    else:
+        out = sys.stdout
+    try:
+        ok, failed = run_batch(retriever, args.queries, out, progress=not args.no_progress, **rank_args)
+    finally:
+        if out is not sys.stdout:
+            out.close()
+    if failed:
+        print(
+            f"{failed} of {ok + failed} queries failed; see the error field of their lines", file=sys.stderr
+        )
+        return 1
+    return 0

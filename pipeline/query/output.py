@@ -1,0 +1,58 @@
+"""Human-readable rendering of a :class:`QueryResult` (the CLI's default output)."""
+
+from __future__ import annotations
+
+import os
+
+from pipeline.query.results import QueryResult
+
+
+def _score(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def _stage1_line(r: QueryResult) -> str:
+    if r.mode == "image-only":
+        return f"image-only: all {r.n_stage1} models ranked by stage 2"
+    if r.mode == "text-only":
+        return f"text-only: the top {r.n_stage1} models by stage-1 score"
+    if r.used_fallback:
+        kept = f"none reached tau {r.threshold:.2f}: kept the top {r.n_stage1} (fallback-k {r.fallback_k})"
+    else:
+        kept = f"{r.n_stage1} model{'s' * (r.n_stage1 != 1)} reached tau {r.threshold:.2f}"
+    return f"stage 1: {kept}; decided by {r.decided_by.replace('stage', 'stage ')}"
+
+
+def format_result(r: QueryResult) -> str:
+    """A short header (ROI, stage-1 outcome), the ranked table and the latency breakdown."""
+    lines = []
+    q = r.query
+    if q:
+        roi = q.get("roi", {})
+        box = ",".join(f"{v:g}" for v in roi.get("box", []))
+        lines.append(f"query: {q.get('prompt')!r} in {q.get('image')} ({q.get('profile')} profile)")
+        lines.append(f"ROI: {roi.get('roi_mode')} from {roi.get('source')}, box {box}")
+        caption = q.get("embedding", {}).get("roi_caption")
+        if caption:
+            lines.append(f"ROI caption: {caption}")
+        for note in roi.get("notes", []):
+            lines.append(f"note: {note}")
+    lines.append(_stage1_line(r))
+    rows = [("rank", "model", "text", "image", "view", "source")]
+    for c in r.candidates:
+        path = os.path.join(c.library_root, c.source_path) if c.library_root else c.source_path
+        view = "-" if c.best_view is None else str(c.best_view)
+        rows.append((str(c.rank), c.name, _score(c.text_score), _score(c.image_score), view, path))
+    if len(rows) == 1:
+        lines.append("no models matched")
+    else:
+        widths = [max(len(row[i]) for row in rows) for i in range(5)]
+        for row in rows:
+            cells = [row[0].rjust(widths[0]), row[1].ljust(widths[1])]
+            cells += [row[i].rjust(widths[i]) for i in (2, 3, 4)]
+            lines.append("  ".join(cells + [row[5]]))
+    t = r.timings
+    if t:
+        parts = [f"{k.removesuffix('_ms').replace('_', ' ')} {v:.0f} ms" for k, v in t.items()]
+        lines.append("timings: " + ", ".join(parts))
+    return "\n".join(lines)

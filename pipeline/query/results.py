@@ -1,0 +1,96 @@
+"""Plain result records of the query path (JSON-ready, no model or store handles)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class QueryEmbedding:
+    """The ROI's vectors: everything :meth:`Retriever.rank` needs, so ranking never calls a model."""
+
+    text_space: np.ndarray  # float32, caption-embedding space (CLIP image of the ROI / MiniLM of its caption)
+    image_space: np.ndarray  # float32, view-encoder space (DINOv2 / descriptor of the ROI)
+    prompt_vec: np.ndarray | None = None  # float32, the prompt in caption-embedding space (when used)
+    roi_caption: str | None = None  # the ROI's own caption (caption-space profiles)
+
+    def describe(self) -> dict:
+        return {
+            "text_dim": int(self.text_space.shape[-1]),
+            "image_dim": int(self.image_space.shape[-1]),
+            "prompt_used": self.prompt_vec is not None,
+            "roi_caption": self.roi_caption,
+        }
+
+
+@dataclass
+class Candidate:
+    """One ranked model."""
+
+    rank: int
+    mesh_id: str
+    name: str
+    source_path: str
+    text_score: float | None  # stage-1 score (max over the model's captions)
+    image_score: float | None  # stage-2 score (max over the model's views)
+    best_view: int | None  # view_index of the best-matching view
+    library_root: str | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class QueryResult:
+    """Ranked candidates plus how they were decided."""
+
+    candidates: list[Candidate]
+    used_fallback: bool
+    decided_by: str  # "stage1" | "stage2"
+    n_stage1: int  # models kept by stage 1 (all models in image-only mode)
+    timings: dict[str, float] = field(default_factory=dict)  # milliseconds per step
+    mode: str = "two-stage"
+    threshold: float | None = None
+    fallback_k: int = 10
+    prompt_weight: float = 0.0
+    query: dict = field(default_factory=dict)  # image, prompt, ROI and models (filled by Retriever.query)
+    roi: object | None = field(default=None, repr=False)  # the Roi (Retriever.query), not serialised
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.candidates[0] if self.candidates else None
+
+    def to_dict(self) -> dict:
+        out = {
+            "query": self.query,
+            "mode": self.mode,
+            "decided_by": self.decided_by,
+            "used_fallback": self.used_fallback,
+            "threshold": self.threshold,
+            "fallback_k": self.fallback_k,
+            "prompt_weight": self.prompt_weight,
+            "n_stage1": self.n_stage1,
+            "candidates": [c.to_dict() for c in self.candidates],
+            "timings_ms": {k: round(v, 3) for k, v in self.timings.items()},
+        }
+        return _finite(out)
+
+    def to_json(self, indent: int | None = None) -> str:
+        return json.dumps(self.to_dict(), indent=indent)
+
+
+def _finite(obj):
+    """JSON has no inf/NaN: they become null."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj

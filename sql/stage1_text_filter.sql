@@ -1,0 +1,36 @@
+-- Query stage 1, the text filter (OSCAR): score every model by its best-matching caption and keep the
+-- models scoring at least tau, or the fallback_k best ones when none does.
+-- Embeddings are L2-normalised at onboarding, so the inner product is the cosine similarity.
+-- Ties are broken by mesh_idx (= mesh_id order), so results are deterministic.
+-- Parameters: $query (FLOAT[]) the query vector in caption-embedding space, same width as the rows;
+--             $threshold (DOUBLE) tau, or NULL to skip the threshold (always the top fallback_k);
+--             $fallback_k (BIGINT) how many models to keep when none passes tau.
+-- Inputs: stage1_captions(mesh_idx INTEGER, embedding FLOAT[dim]), one row per caption
+--         (registered by pipeline.query.stage1; built by query_caption_embeddings.sql).
+WITH scores AS MATERIALIZED (
+    SELECT mesh_idx, max(list_dot_product(embedding, CAST($query AS FLOAT[]))) AS score
+    FROM stage1_captions
+    GROUP BY mesh_idx
+),
+passed AS (
+    SELECT mesh_idx, score FROM scores WHERE score >= CAST($threshold AS FLOAT)  -- compared in float32
+),
+fallback AS (
+    SELECT mesh_idx, score
+    FROM scores
+    WHERE NOT EXISTS (SELECT 1 FROM passed)
+    ORDER BY score DESC, mesh_idx
+    LIMIT $fallback_k
+)
+SELECT
+    CAST(mesh_idx AS INTEGER) AS mesh_idx,  -- index into the query's mesh list
+    CAST(score AS FLOAT) AS score,          -- max over the model's captions of the cosine
+    FALSE AS used_fallback                  -- passed tau
+FROM passed
+UNION ALL
+SELECT
+    CAST(mesh_idx AS INTEGER) AS mesh_idx,
+    CAST(score AS FLOAT) AS score,
+    TRUE AS used_fallback                   -- kept as one of the fallback_k best
+FROM fallback
+ORDER BY score DESC, mesh_idx;

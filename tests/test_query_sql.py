@@ -1,0 +1,204 @@
+"""The query path's SQL files against a few hand-made rows (in-memory DuckDB)."""
+
+from __future__ import annotations
+
+import duckdb
+import numpy as np
+import pyarrow as pa
+import pytest
+from query_helpers import make_store, unit
+
+from pipeline.db import load_sql
+from pipeline.query.stage1 import TextFilter
+
+
+def captions(rows: list[tuple[int, list[float]]]) -> pa.Table:
+    """stage1_captions rows: (mesh_idx, embedding)."""
+    dim = len(rows[0][1])
+    flat = np.asarray([v for _, v in rows], dtype=np.float32).reshape(-1)
+    return pa.table(
+        {
+            "mesh_idx": pa.array([m for m, _ in rows], pa.int32()),
+            "embedding": pa.FixedSizeListArray.from_arrays(pa.array(flat), dim),
+        }
+    )
+
+
+# mesh 0: captions scoring 0.9 and 0.1 against q = e1; mesh 1: 0.5; mesh 2: 0.3 and 0.5; mesh 3: -1
+ROWS = [
+    (0, [0.9, np.sqrt(1 - 0.81), 0.0]),
+    (0, [0.1, 0.0, np.sqrt(1 - 0.01)]),
+    (1, [0.5, np.sqrt(0.75), 0.0]),
+    (2, [0.3, 0.0, np.sqrt(1 - 0.09)]),
+    (2, [0.5, 0.0, np.sqrt(0.75)]),
+    (3, [-1.0, 0.0, 0.0]),
+]
+Q = np.array([1.0, 0.0, 0.0], np.float32)
+
+
+@pytest.fixture()
+def text_filter():
+    f = TextFilter(captions(ROWS), threads=1)
+    yield f
+    f.close()
+
+
+def test_score_is_max_over_captions_and_threshold_keeps_passing_models(text_filter):
+    r = text_filter.run(Q, threshold=0.45, fallback_k=10)
+    assert not r.used_fallback
+    assert r.mesh_idx.tolist()[0] == 0 and sorted(r.mesh_idx.tolist()[1:]) == [1, 2]
+    np.testing.assert_allclose(r.scores, [0.9, 0.5, 0.5], atol=1e-6)
+
+
+def test_ties_are_broken_by_mesh_index(text_filter):
+    r = text_filter.run(Q, threshold=0.45, fallback_k=10)
+    assert r.mesh_idx.tolist() == [0, 1, 2]  # meshes 1 and 2 tie at 0.5
+    top2 = text_filter.run(Q, threshold=None, fallback_k=2)
+    assert top2.mesh_idx.tolist() == [0, 1]
+
+
+def test_threshold_is_inclusive(text_filter):
+    r = text_filter.run(Q, threshold=0.9, fallback_k=10)
+    assert r.mesh_idx.tolist() == [0] and not r.used_fallback
+
+
+def test_fallback_top_k_when_nothing_passes(text_filter):
+    r = text_filter.run(Q, threshold=0.95, fallback_k=3)
+    assert r.used_fallback
+    assert r.mesh_idx.tolist() == [0, 1, 2]
+    np.testing.assert_allclose(r.scores, [0.9, 0.5, 0.5], atol=1e-6)
+    everything = text_filter.run(Q, threshold=2.0, fallback_k=100)
+    assert everything.mesh_idx.tolist() == [0, 1, 2, 3] and everything.scores[-1] == pytest.approx(-1.0)
+
+
+def test_null_threshold_is_plain_top_k(text_filter):
+    r = text_filter.run(Q, threshold=None, fallback_k=1)
+    assert r.mesh_idx.tolist() == [0] and r.used_fallback
+
+
+def test_query_vector_width_is_checked(text_filter):
+    with pytest.raises(ValueError, match="3"):
+        text_filter.run(np.ones(4, np.float32), threshold=0.5, fallback_k=1)
+
+
+def test_sql_matches_numpy_on_random_rows():
+    rng = np.random.default_rng(1)
+    vecs = unit(rng.standard_normal((400, 16)))
+    mesh = np.repeat(np.arange(50), 8)
+    f = TextFilter(captions(list(zip(mesh.tolist(), vecs.tolist(), strict=True))))
+    q = unit(rng.standard_normal(16))
+    r = f.run(q, threshold=None, fallback_k=50)
+    ref = (vecs @ q).reshape(50, 8).max(axis=1)
+    order = np.lexsort((np.arange(50), -ref))
+    assert r.mesh_idx.tolist() == order.tolist()
+    np.testing.assert_allclose(r.scores, ref[order], atol=1e-6)
+
+
+def test_stage1_sql_binds_every_value():
+    sql = load_sql("stage1_text_filter")
+    assert sql.lstrip().startswith("--")
+    for name in ("$query", "$threshold", "$fallback_k"):
+        assert name in sql
+
+
+def _con(store_path):
+    from pipeline.query.library import connect_store
+    from pipeline.store import Store
+
+    return connect_store(Store.open(store_path))
+
+
+def test_active_meshes_sql(tmp_path):
+    from datetime import datetime, timezone
+
+    from pipeline import schemas
+    from pipeline.store import Store
+
+    e = unit(np.eye(4))
+    path = make_store(
+        tmp_path / "s",
+        {
+            "m-b": {"name": "bee", "captions": e[:1], "views": e[:1], "source_path": "z/bee.obj"},
+            "m-a": {"name": "ay", "captions": e[1:2], "views": e[1:2]},
+            "m-gone": {"name": "gone", "captions": e[2:3], "views": e[2:3]},
+        },
+    )
+    store = Store.open(path, writable=True)
+    now = datetime(2025, 1, 2, tzinfo=timezone.utc)
+    later = "20250102T000000000000Z-bbbbbb"
+    rows = [  # m-gone is removed later; m-b gains a second path that sorts first
+        {
+            "mesh_id": "m-gone",
+            "source_path": "gone/model.obj",
+            "library_root": "/library",
+            "name": "gone",
+            "status": "removed",
+            "seen_at": now,
+            "run_id": later,
+        },
+        {
+            "mesh_id": "m-b",
+            "source_path": "a/copy.obj",
+            "library_root": "/library",
+            "name": "bee copy",
+            "status": "active",
+            "seen_at": now,
+            "run_id": later,
+        },
+    ]
+    store.commit({"meshes": pa.Table.from_pylist(rows, schema=schemas.MESHES)}, later)
+    store.close()
+    con = _con(path)
+    out = con.sql(load_sql("query_active_meshes")).to_arrow_table().to_pylist()
+    assert [(r["mesh_idx"], r["mesh_id"], r["source_path"], r["n_paths"]) for r in out] == [
+        (0, "m-a", "ay/model.obj", 1),
+        (1, "m-b", "a/copy.obj", 2),
+    ]
+
+
+def test_embedding_sql_filters_fingerprint_and_keeps_latest_run(tmp_path):
+    e = unit(np.eye(3))
+    path = make_store(tmp_path / "s", {"m1": {"name": "one", "captions": e[:2], "views": e[:1]}})
+    con = _con(path)
+    meshes = con.sql(load_sql("query_active_meshes")).to_arrow_table()
+    con.register("query_meshes", meshes.select(["mesh_idx", "mesh_id"]))
+    src = pa.table(
+        {
+            "mesh_id": ["m1", "m1", "m1", "other"],
+            "view_index": pa.array([0, 0, 1, 0], pa.int16()),
+            "embedding": pa.FixedSizeListArray.from_arrays(pa.array(np.tile(e[0], 4).astype(np.float32)), 3),
+            "fingerprint": ["fp", "fp", "old", "fp"],
+            "run_id": ["r1", "r2", "r3", "r1"],
+        }
+    )
+    con.register("query_caption_source", src)
+    out = con.sql(load_sql("query_caption_embeddings"), params={"fingerprint": "fp"}).to_arrow_table()
+    assert out.num_rows == 1 and out.column("mesh_idx").to_pylist() == [0]
+
+
+def test_candidate_views_sql(tmp_path):
+    from PIL import Image
+
+    e = unit(np.eye(3))
+    img = Image.new("RGB", (8, 8), (10, 20, 30))
+    path = make_store(
+        tmp_path / "s",
+        {
+            "m1": {"name": "one", "captions": e[:1], "views": e[:2], "images": [img, img]},
+            "m2": {"name": "two", "captions": e[1:2], "views": e[1:2], "images": [img]},
+        },
+    )
+    con = _con(path)
+    params = {"mesh_ids": ["m1"], "render_fingerprint": "fp-render", "caption_fingerprint": "fp-caption"}
+    rows = con.sql(load_sql("candidate_views"), params=params).to_arrow_table().to_pylist()
+    assert [(r["mesh_id"], r["view_index"]) for r in rows] == [("m1", 0), ("m1", 1)]
+    assert rows[0]["image"][:4] == b"\x89PNG"
+    injection = {**params, "mesh_ids": ["m1' OR '1'='1"]}
+    assert con.sql(load_sql("candidate_views"), params=injection).to_arrow_table().num_rows == 0
+
+
+def test_duckdb_rejects_unbound_parameters():
+    con = duckdb.connect()
+    con.register("stage1_captions", captions(ROWS))
+    with pytest.raises(duckdb.Error):
+        con.execute(load_sql("stage1_text_filter"), {"query": Q.tolist()})
