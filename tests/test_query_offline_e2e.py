@@ -1,0 +1,116 @@
+"""End to end with the offline profile: onboard a few real YCB meshes, render each from a viewpoint that
+is not one of its onboarding views, and query with that render and its mask: the mesh must come first."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from conftest import copy_ycb
+from onboard_helpers import onboard
+from query_helpers import render_query_view
+
+from pipeline.query import Retriever
+
+#: two look-alike cups (colour tells them apart), a mug, two boxes and a bottle
+YCB_NAMES = ["065-a_cups", "065-b_cups", "025_mug", "004_sugar_box", "008_pudding_box", "021_bleach_cleanser"]
+
+
+@pytest.fixture(scope="module")
+def ycb_store(tmp_path_factory, offline_models):
+    root = tmp_path_factory.mktemp("ycb_query")
+    library = copy_ycb(root / "library", YCB_NAMES)
+    onboard(library, root / "store", models=offline_models, render=_render_config())
+    return root / "store", library
+
+
+def _render_config():
+    from pipeline.config import RenderConfig
+
+    return RenderConfig(resolution=192)  # smaller renders keep the test fast; same layout as the default
+
+
+@pytest.fixture(scope="module")
+def queries(ycb_store, tmp_path_factory):
+    """name -> (photo path, mask path) of a novel view (azimuth 20, elevation 8) of each mesh."""
+    from PIL import Image
+
+    _, library = ycb_store
+    out = tmp_path_factory.mktemp("ycb_photos")
+    photos = {}
+    for name in YCB_NAMES:
+        img, mask = render_query_view(
+            library / name / "google_16k" / "textured.obj" if False else _mesh(library, name)
+        )
+        img.save(out / f"{name}.png")
+        Image.fromarray(mask).save(out / f"{name}_mask.png")
+        photos[name] = (out / f"{name}.png", out / f"{name}_mask.png")
+    return photos
+
+
+def _mesh(library, name):
+    return next(p for p in sorted((library / name).rglob("*.obj")))
+
+
+def prompt_of(name: str) -> str:
+    return "the " + " ".join(name.split("_")[1:])
+
+
+def test_novel_view_with_mask_returns_the_mesh_first(ycb_store, queries, offline_models):
+    store, _ = ycb_store
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        assert r.n_meshes == len(YCB_NAMES)
+        ranks = {}
+        for name, (photo, mask) in queries.items():
+            result = r.query(str(photo), prompt_of(name), mask=str(mask), top=len(YCB_NAMES))
+            ranks[name] = [c.name for c in result.candidates].index(name) + 1
+            assert (
+                result.candidates[0].text_score is not None and result.candidates[0].image_score is not None
+            )
+    assert ranks == {name: 1 for name in YCB_NAMES}
+
+
+def test_cli_end_to_end_with_explain_and_export(
+    ycb_store, queries, offline_models, monkeypatch, capsys, tmp_path
+):
+    import pipeline.models.registry as registry
+    from pipeline.query.cli import main
+
+    monkeypatch.setattr(registry, "create_model", lambda role, spec, **kw: offline_models[role])
+    store, library = ycb_store
+    photo, mask = queries["025_mug"]
+    argv = ["--store", str(store), "--image", str(photo), "--prompt", "the red mug", "--mask", str(mask)]
+    argv += [
+        "--json",
+        "--explain",
+        str(tmp_path / "sheet.png"),
+        "--export",
+        str(tmp_path / "export"),
+        "--top",
+        "3",
+    ]
+    assert main(argv) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["candidates"][0]["name"] == "025_mug" and data["query"]["profile"] == "offline"
+    assert (tmp_path / "sheet.png").stat().st_size > 10_000
+    exported = {p.rsplit("/", 1)[-1] for p in data["exported_files"]}
+    assert exported == {p.name for p in (library / "025_mug").rglob("*") if p.is_file()}
+    box_argv = [
+        "--store",
+        str(store),
+        "--image",
+        str(photo),
+        "--prompt",
+        "the red mug",
+        "--box",
+        "10,10,250,250",
+    ]
+    assert main(box_argv) == 0
+    out = capsys.readouterr().out
+    assert (
+        "border colour" in out
+        and out.splitlines()[
+            out.splitlines().index(next(x for x in out.splitlines() if x.lstrip().startswith("rank"))) + 1
+        ].split()[1]
+        == "025_mug"
+    )
