@@ -56,6 +56,9 @@ class MiniLMTextEncoder:
                 "minilm text encoder needs sentence-transformers: pip install sentence-transformers"
             ) from None
         try:
+            from transformers.utils import logging as hf_logging
+
+            hf_logging.disable_progress_bar()  # no "Loading weights" bar on stderr of CLIs
             self._model = SentenceTransformer(str(path), device=device, local_files_only=True)
         except Exception as exc:  # any loader failure becomes one clear line
             raise ModelLoadError(
