@@ -22,7 +22,7 @@ def tiny_store(tmp_path_factory, offline_models):
 
 
 def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
-    _, store = tiny_store
+    lib, store = tiny_store
     queries = tmp_path / "queries"
     assert (
         main(
@@ -58,6 +58,10 @@ def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
             "1,5",
             "--style-store",
             f"attributes={store}",
+            "--onboard-styles",
+            "blind",
+            "--library",
+            str(lib),
             "--gallery",
             "3",
             "--no-progress",
@@ -76,6 +80,10 @@ def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
     assert {r["setting"]["mode"] for r in doc["sweeps"]["mode"]} == {"two-stage", "text-only", "image-only"}
     assert {r["setting"]["roi"] for r in doc["sweeps"]["roi"]} == {"segm", "bbox"}
     assert doc["prompt_styles"]["attributes"]["instance"] == base
+    # the blind-style store starts as a copy (renders reused) and is re-captioned; the offline captioner
+    # ignores the prompt, so its captions and therefore its numbers equal the attributes store's
+    blind = doc["prompt_styles"]["blind"]
+    assert blind["store"] == str(out / "stores" / "blind") and blind["instance"] == base
     assert doc["timings"]["roi_embed_segm_ms"]["n"] == 6
     for name in ("report.md", "report.html", "per_query.jsonl", "plots/tau_sweep.png"):
         assert (out / name).is_file(), name

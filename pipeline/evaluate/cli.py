@@ -193,13 +193,15 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     opts = MetricOptions(args.ties, args.map_norm)
     run = evaluate(engine, queries, library, plan, opts, sweeps=not args.no_sweeps, progress=_bar(progress))
 
-    styles = _style_stores(args, out)
+    # adapters already loaded by the main retriever are shared with style onboarding and style retrievers
+    shared = dict(getattr(engine.retriever, "_models", {}))
+    styles = _style_stores(args, out, shared)
     style_results = None
     if styles:
         engines = {}
         for style, store in styles.items():
             lib = Library(read_store_meshes(store), pattern, class_map)
-            engines[style] = (Engine.open(store, args.profile, overrides, args.device), lib)
+            engines[style] = (Engine.open(store, args.profile, overrides, args.device, models=shared), lib)
         style_results = evaluate_styles(engines, queries, base, opts)
         for style, store in styles.items():
             style_results[style]["store"] = store
@@ -282,7 +284,7 @@ def _queries(args, library, out: Path):
     return load_queries(args.queries, **bop), str(args.queries)
 
 
-def _style_stores(args, out: Path) -> dict[str, str]:
+def _style_stores(args, out: Path, models: dict | None = None) -> dict[str, str]:
     styles: dict[str, str] = {}
     for item in args.style_store:
         style, sep, store = item.partition("=")
@@ -296,15 +298,31 @@ def _style_stores(args, out: Path) -> dict[str, str]:
         from pipeline.executor import run_onboarding
 
         root = Path(args.styles_dir or out / "stores")
+        reuse = _onboarded_from(args.store) == {str(Path(args.library).resolve())}
         for style in args.onboard_styles:
             store = root / style
+            if reuse and not store.exists():
+                # start from a copy of --store: same renders and image embeddings (same fingerprints), so
+                # onboarding only re-captions and re-embeds the captions for this style
+                import shutil
+
+                shutil.copytree(args.store, store, ignore=shutil.ignore_patterns("_lock", "_cache", "*.tmp"))
             cfg = OnboardConfig(
                 profile=args.profile, model_overrides=model_overrides(args), prompt_style=style
             )
-            summary = run_onboarding(args.library, str(store), cfg, progress=not args.no_progress)
+            summary = run_onboarding(
+                args.library, str(store), cfg, progress=not args.no_progress, models=models
+            )
             print(f"prompt style {style}: " + summary.lines()[0])
             styles[style] = str(store)
     return styles
+
+
+def _onboarded_from(store_path: str) -> set[str]:
+    """Library roots of a store's active meshes."""
+    from pipeline.evaluate.library import read_store_meshes
+
+    return {m.library_root for m in read_store_meshes(store_path)}
 
 
 def _bar(progress: bool):
