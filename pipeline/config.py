@@ -7,6 +7,7 @@ import json
 from dataclasses import asdict, dataclass, field
 
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
+from pipeline.ray_options import RayOptions
 
 #: Bump when rendering code changes in a way that changes pixels.
 RENDER_VERSION = "pyrender-3"
@@ -56,6 +57,7 @@ class OnboardConfig:
     force: tuple[str, ...] = ()
     engine: str = "local"
     model_options: dict[str, dict] = field(default_factory=dict)  # per-role extra adapter options
+    ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
 
     def __post_init__(self) -> None:
         if self.prompt_style not in PROMPT_STYLES:

@@ -348,11 +348,11 @@ class LocalExecutor:
         if computed is None:
             with _Timer(self.seconds, key.split(":")[0]):
                 return stage(make_input())
-        out = computed[key].filter(pc.field("mesh_id").isin(ids))
-        missing = set(ids) - set(out.column("mesh_id").to_pylist())
+        out = computed.get(key)
+        missing = set(ids) - (set(out.column("mesh_id").to_pylist()) if out is not None else set())
         if missing:
             raise RuntimeError(f"{key}: no computed rows for {len(missing)} mesh(es), e.g. {min(missing)}")
-        return out
+        return out.filter(pc.field("mesh_id").isin(ids))
 
     def _text_input(self, captions: pa.Table | None, txt_ids: list[str]) -> pa.Table:
         """Captions to embed: this batch's, plus stored ones for meshes not captioned in this batch."""

@@ -64,7 +64,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="executor (default: local)")
     p.add_argument(
-        "--address", default=None, help="Ray cluster address for --engine ray (default: start local)"
+        "--address",
+        default=None,
+        help="Ray cluster for --engine ray: 'auto', 'ray://HEAD:10001' (default: start a local instance)",
+    )
+    p.add_argument("--ray-render-workers", type=int, default=0, help="Ray render actors (0: one per CPU)")
+    p.add_argument("--ray-caption-actors", type=int, default=1, help="Ray captioner actors (default: 1)")
+    p.add_argument("--ray-embed-actors", type=int, default=1, help="Ray actors per encoder (default: 1)")
+    p.add_argument(
+        "--ray-gpus-per-actor",
+        type=float,
+        default=None,
+        help="GPUs per model actor (default: encoders a quarter, captioners share the rest)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
@@ -76,6 +87,7 @@ def main(argv: list[str] | None = None) -> int:
     from pathlib import Path
 
     from pipeline.config import OnboardConfig, RenderConfig
+    from pipeline.ray_options import RayOptions
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
@@ -97,7 +109,13 @@ def main(argv: list[str] | None = None) -> int:
             retry_failed=args.retry_failed,
             force=tuple(args.force),
             engine=args.engine,
-            model_options={"_ray": {"address": args.address}} if args.address else {},
+            ray=RayOptions(
+                address=args.address,
+                render_workers=args.ray_render_workers,
+                caption_actors=args.ray_caption_actors,
+                embed_actors=args.ray_embed_actors,
+                gpus_per_actor=args.ray_gpus_per_actor,
+            ),
         )
         cfg.fingerprints()
     except ValueError as exc:
@@ -105,12 +123,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from pipeline.executor import run_onboarding
     from pipeline.models.registry import ModelLoadError
+    from pipeline.ray_engine import RayEngineError
     from pipeline.store import StoreError
     from pipeline.workers import RenderSetupError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
-    except (StoreError, ModelLoadError, RenderSetupError) as exc:
+    except (StoreError, ModelLoadError, RenderSetupError, RayEngineError) as exc:
         return fail(str(exc))
     except KeyboardInterrupt:
         return fail("interrupted: committed batches are kept; run the same command again to resume", 130)

@@ -1,0 +1,45 @@
+"""How the Ray engine lays the onboarding stages out on a cluster (``OnboardConfig.ray``).
+
+None of this changes what is written (no fingerprint depends on it), only where and how fast it runs.
+Defaults fit a single machine; ``docs/scaling.md`` explains how to size them for a cluster.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class RayOptions:
+    """Cluster address, actor pool sizes, batch sizes and fault tolerance of ``--engine ray``."""
+
+    #: None: start a local Ray instance in this process; "auto": the cluster this machine belongs to;
+    #: "ray://HEAD:10001": a remote cluster through Ray Client.
+    address: str | None = None
+    #: CPUs of a local instance (None: every core). Ignored when joining a cluster.
+    num_cpus: int | None = None
+    #: Render actors, each one CPU worker holding one GL context in a child process (0: one per CPU
+    #: left after the model actors, at most one per mesh to render).
+    render_workers: int = 0
+    #: Meshes per render task; a crashed task is retried as a whole, so keep it small.
+    render_batch_size: int = 2
+    #: Captioner actors (each holds one captioning model).
+    caption_actors: int = 1
+    #: Actors per encoder (text encoder, and each image encoder role).
+    embed_actors: int = 1
+    #: Meshes per captioning batch (8 views each).
+    caption_batch_size: int = 8
+    #: Meshes per embedding batch.
+    embed_batch_size: int = 16
+    #: GPUs per model actor (None: share the cluster's GPUs evenly among the model actors, at most 1
+    #: each; 0 on a CPU-only cluster).
+    gpus_per_actor: float | None = None
+    #: CPUs reserved per model actor (None: 1 with GPUs, 0.25 without, so render keeps the cores).
+    model_actor_cpus: float | None = None
+    #: Retries of a batch whose actor crashed (the actor itself is always restarted); a batch that
+    #: still fails is recorded as ``errors`` rows (error_type WorkerCrash) and the run goes on.
+    max_retries: int = 3
+    #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" kills the STAGE actor (render, caption,
+    #: embed_text, embed_image) once, on the batch holding that mesh, if MARKER_FILE does not exist yet
+    #: (it is created first); "STAGE:MESH_ID_PREFIX:" kills it on every attempt.
+    inject_fault: str = ""

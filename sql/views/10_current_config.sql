@@ -1,0 +1,27 @@
+-- current_config: the configuration of the most recent onboarding run (the latest row of runs_all).
+-- "Current" everywhere else means "what this config writes": its fingerprints, models and view count.
+CREATE OR REPLACE VIEW current_config AS
+SELECT
+    CAST(run_id AS VARCHAR) AS run_id,
+    CAST(profile AS VARCHAR) AS profile,
+    CAST(engine AS VARCHAR) AS engine,
+    CAST(json_extract_string(config_json, '$.render.cameras') AS VARCHAR) AS cameras,
+    CAST(
+        CASE
+            WHEN json_extract_string(config_json, '$.render.cameras') = 'cap3d' THEN 8
+            ELSE CAST(json_extract(config_json, '$.render.views_per_ring') AS INTEGER)
+                * json_array_length(json_extract(config_json, '$.render.elevations_deg'))
+        END AS INTEGER
+    ) AS expected_views,
+    CAST(config_json AS JSON) AS config
+FROM runs_all
+ORDER BY run_id DESC
+LIMIT 1;
+
+COMMENT ON VIEW current_config IS 'the configuration of the most recent onboarding run';
+COMMENT ON COLUMN current_config.run_id IS 'the run whose configuration is current';
+COMMENT ON COLUMN current_config.profile IS 'model profile of that run (offline | paper)';
+COMMENT ON COLUMN current_config.engine IS 'executor of that run (local | ray)';
+COMMENT ON COLUMN current_config.cameras IS 'camera layout (oscar | cap3d)';
+COMMENT ON COLUMN current_config.expected_views IS 'views every mesh should have under this config';
+COMMENT ON COLUMN current_config.config IS 'the full configuration as JSON (models, render options, fingerprints)';
