@@ -85,6 +85,7 @@ def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
     blind = doc["prompt_styles"]["blind"]
     assert blind["store"] == str(out / "stores" / "blind") and blind["instance"] == base
     assert doc["timings"]["roi_embed_segm_ms"]["n"] == 6
+    assert sum(g["n"] for g in doc["groups"]["background"].values()) == 6
     for name in ("report.md", "report.html", "per_query.jsonl", "plots/tau_sweep.png"):
         assert (out / name).is_file(), name
     for g in doc["gallery"]:

@@ -118,6 +118,11 @@ def test_each_setting_is_scored_from_one_embedding_per_roi(setup):
         Engine(retriever, "unused"), queries, lib, SweepPlan(Setting(threshold=0.9), top_ks=(1, 10))
     )
     assert _top1(never, fallback_k=1) == 1.0 and _top1(never, fallback_k=10) == 0.5
+    from pipeline.evaluate.sweep import group_metrics
+
+    by_prompt = group_metrics(run.records, "prompt")
+    assert by_prompt["the a"]["n"] == 1 and by_prompt["the a"]["top1"] == 1.0
+    assert group_metrics(run.records, "missing") == {}
     summary = run.summary()
     assert [r["setting"]["threshold"] for r in summary["sweeps"]["tau"]] == [0.4, 0.55, 0.9]
     assert [r["setting"]["mode"] for r in summary["sweeps"]["mode"]] == [

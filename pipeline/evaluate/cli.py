@@ -132,6 +132,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     out = p.add_argument_group("report")
     out.add_argument("--out", required=True, metavar="REPORT_DIR", help="report directory (created)")
+    out.add_argument(
+        "--group-by",
+        action="append",
+        default=None,
+        metavar="KEY",
+        help="also break the base metrics down by a query field or metadata key (repeatable; default: "
+        "background, when the queries have it)",
+    )
     out.add_argument("--gallery", type=int, default=24, help="failures shown in the gallery (default: 24)")
     out.add_argument("--no-plots", action="store_true", help="skip the matplotlib figures")
     out.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -166,7 +174,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     from pipeline.evaluate.engine import Engine, Setting
     from pipeline.evaluate.library import Library, load_class_map, read_store_meshes
     from pipeline.evaluate.report import write_report
-    from pipeline.evaluate.sweep import MetricOptions, SweepPlan, evaluate, evaluate_styles
+    from pipeline.evaluate.sweep import MetricOptions, SweepPlan, evaluate, evaluate_styles, group_metrics
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -228,6 +236,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         "library": {"n_meshes": len(library), "n_classes": len(set(library.labels.values()))},
         **summary,
         "prompt_styles": style_results,
+        "groups": {key: group_metrics(run.records, key) for key in _group_keys(args, run.records)},
     }
     paths = write_report(doc, run.records, out, args.store, library, args.gallery, plots=not args.no_plots)
     inst = doc["base"]["instance"]
@@ -316,6 +325,12 @@ def _style_stores(args, out: Path, models: dict | None = None) -> dict[str, str]
             print(f"prompt style {style}: " + summary.lines()[0])
             styles[style] = str(store)
     return styles
+
+
+def _group_keys(args, records) -> list[str]:
+    if args.group_by is not None:
+        return list(args.group_by)
+    return ["background"] if any("background" in r.query.meta for r in records) else []
 
 
 def _onboarded_from(store_path: str) -> set[str]:

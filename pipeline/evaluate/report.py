@@ -111,6 +111,11 @@ def _sections(doc: dict, plots: dict[str, str], gallery: list[dict]) -> list[tup
         blocks.append(("table", (["style", "store"] + list(SWEEP_COLUMNS), rows)))
         if "styles_bars" in plots:
             blocks.append(("img", (plots["styles_bars"], "prompt styles")))
+    for key, groups in (doc.get("groups") or {}).items():
+        blocks.append(("h2", f"By {key} (base setting, instance level)"))
+        cols = ["n", "mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR"]
+        rows = [[value] + [_num(m.get(c)) for c in cols] for value, m in groups.items()]
+        blocks.append(("table", ([key] + cols, rows)))
     if doc.get("timings"):
         blocks.append(("h2", "Timings (ms)"))
         rows = [

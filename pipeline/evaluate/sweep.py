@@ -206,6 +206,16 @@ def evaluate(
     return EvalRun(plan, results, records, unresolved, failed, embed_seconds)
 
 
+def group_metrics(records: list[QueryRecord], key: str) -> dict[str, dict]:
+    """Instance-level base-setting metrics per value of a query field or metadata key (e.g. background)."""
+    groups: dict[str, list[dict]] = {}
+    for r in records:
+        value = getattr(r.query, key, None) if key in ("label", "prompt") else r.query.meta.get(key)
+        if value is not None:
+            groups.setdefault(str(value), []).append({k: v for k, v in r.metrics.items() if k != "rank"})
+    return {v: M.aggregate(rows) for v, rows in sorted(groups.items())}
+
+
 def _thumbnail(roi, size: int = 256):
     image = getattr(roi, "image", None)
     if image is None:
