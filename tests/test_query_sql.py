@@ -97,7 +97,7 @@ def test_sql_matches_numpy_on_random_rows():
 def test_stage1_sql_binds_every_value():
     sql = load_sql("stage1_text_filter")
     assert sql.lstrip().startswith("--")
-    for name in ("$query", "$threshold", "$fallback_k"):
+    for name in [f"$q{i}" for i in range(8)] + ["$threshold", "$fallback_k"]:
         assert name in sql
 
 
@@ -166,7 +166,9 @@ def test_embedding_sql_filters_fingerprint_and_keeps_latest_run(tmp_path):
         {
             "mesh_id": ["m1", "m1", "m1", "other"],
             "view_index": pa.array([0, 0, 1, 0], pa.int16()),
-            "embedding": pa.FixedSizeListArray.from_arrays(pa.array(np.tile(e[0], 4).astype(np.float32)), 3),
+            "embedding": pa.FixedSizeListArray.from_arrays(
+                pa.array(np.vstack([e[0], e[1], e[2], e[2]]).reshape(-1)), 3
+            ),
             "fingerprint": ["fp", "fp", "old", "fp"],
             "run_id": ["r1", "r2", "r3", "r1"],
         }
@@ -174,6 +176,7 @@ def test_embedding_sql_filters_fingerprint_and_keeps_latest_run(tmp_path):
     con.register("query_caption_source", src)
     out = con.sql(load_sql("query_caption_embeddings"), params={"fingerprint": "fp"}).to_arrow_table()
     assert out.num_rows == 1 and out.column("mesh_idx").to_pylist() == [0]
+    assert out.column("embedding").to_pylist() == [e[1].tolist()]  # run r2 supersedes r1
 
 
 def test_candidate_views_sql(tmp_path):
@@ -198,7 +201,23 @@ def test_candidate_views_sql(tmp_path):
 
 
 def test_duckdb_rejects_unbound_parameters():
+    from pipeline.query.stage1 import query_params, slice_layout
+
     con = duckdb.connect()
-    con.register("stage1_captions", captions(ROWS))
+    con.register("stage1_captions", slice_layout(captions(ROWS)))
     with pytest.raises(duckdb.Error):
-        con.execute(load_sql("stage1_text_filter"), {"query": Q.tolist()})
+        con.execute(load_sql("stage1_text_filter"), query_params(Q, 1))
+
+
+@pytest.mark.parametrize("dim", [3, 8, 13, 384])
+def test_sliced_layout_keeps_the_inner_product(dim):
+    from pipeline.query.stage1 import slice_layout
+
+    rng = np.random.default_rng(dim)
+    vecs = unit(rng.standard_normal((16, dim)))
+    table = slice_layout(captions(list(zip(range(16), vecs.tolist(), strict=True))))
+    assert table.num_columns == 9 and table.schema.metadata[b"dim"] == str(dim).encode()
+    f = TextFilter(table)
+    q = unit(rng.standard_normal(dim))
+    r = f.run(q, threshold=None, fallback_k=16)
+    np.testing.assert_allclose(np.sort(r.scores), np.sort(vecs @ q), atol=1e-6)

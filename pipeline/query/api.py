@@ -26,9 +26,6 @@ from pipeline.query.settings import MODES, QuerySettings, settings_for
 from pipeline.query.stage1 import TextFilter
 from pipeline.query.stage2 import ViewReranker
 
-#: roles loaded on first use only (a query with --box/--mask never loads the detector)
-LAZY_ROLES = ("detector", "segmenter")
-
 
 class Retriever:
     """An opened store plus the profile's query models, loaded once. Use :meth:`open`."""

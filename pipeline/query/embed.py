@@ -33,8 +33,11 @@ class ImageToCaption:
     def roles(self, with_prompt: bool) -> tuple[str, ...]:
         return ("clip_image_encoder", "view_encoder") + (("text_encoder",) if with_prompt else ())
 
-    def text_vector(self, model: ModelGetter, roi: Roi) -> tuple[np.ndarray, str | None]:
-        return _one(model("clip_image_encoder").encode_image([roi.image])), None
+    def text_vectors(self, model: ModelGetter, roi: Roi, prompt: str | None):
+        """(ROI vector, prompt vector or None, ROI caption or None) in the caption-embedding space."""
+        roi_vec = _one(model("clip_image_encoder").encode_image([roi.image]))
+        prompt_vec = _one(model("text_encoder").encode_text([prompt])) if prompt is not None else None
+        return roi_vec, prompt_vec, None
 
 
 class CaptionToCaption:
@@ -45,7 +48,7 @@ class CaptionToCaption:
     def roles(self, with_prompt: bool) -> tuple[str, ...]:
         return ("captioner", "text_encoder", "view_encoder")
 
-    def text_vector(self, model: ModelGetter, roi: Roi) -> tuple[np.ndarray, str | None]:
+    def text_vectors(self, model: ModelGetter, roi: Roi, prompt: str | None):
         captioner = model("captioner")
         if roi.roi_mode == "bbox" and hasattr(captioner, "caption_masked") and roi.crop_mask is not None:
             # a raw crop has no gray background to find the object by: the whole crop is the object
@@ -53,7 +56,9 @@ class CaptionToCaption:
         else:
             # object on gray, exactly like the onboarding renders: caption it the same way
             caption = captioner.caption([roi.image], "")[0]
-        return _one(model("text_encoder").encode_text([caption])), caption
+        texts = [caption] if prompt is None else [caption, prompt]
+        rows = np.asarray(model("text_encoder").encode_text(texts), dtype=np.float32)  # one batch
+        return rows[0], (rows[1] if prompt is not None else None), caption
 
 
 def strategy_for(has_clip_image: bool) -> ImageToCaption | CaptionToCaption:
@@ -64,8 +69,7 @@ def embed_roi(
     strategy: ImageToCaption | CaptionToCaption, model: ModelGetter, roi: Roi, prompt: str, with_prompt: bool
 ) -> QueryEmbedding:
     """All vectors of one ROI (each model called once)."""
-    text_vec, caption = strategy.text_vector(model, roi)
-    prompt_vec = _one(model("text_encoder").encode_text([prompt])) if with_prompt else None
+    text_vec, prompt_vec, caption = strategy.text_vectors(model, roi, prompt if with_prompt else None)
     image_vec = _one(model("view_encoder").encode_image([roi.image]))
     return QueryEmbedding(text_vec, image_vec, prompt_vec, caption)
 

@@ -18,6 +18,7 @@ import pyarrow as pa
 from pipeline.config import fingerprint
 from pipeline.db import connect, load_sql
 from pipeline.query.errors import QueryError
+from pipeline.query.stage1 import SLICES, slice_layout
 from pipeline.store import Store, slug
 
 CACHE_DIR = ("_cache", "query")
@@ -90,7 +91,9 @@ class StoreTables:
                 f"(`python -m pipeline.onboard LIBRARY --store {store.root}`)"
             )
         self.con.register("query_meshes", self.meshes.select(["mesh_idx", "mesh_id"]))
-        self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"])
+        if self.store.dataset(self.text_dataset) is None:
+            raise QueryError(f"store {store.root} has no caption embeddings: re-run onboarding")
+        self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"], slice_layout)
         self.views = self._embeddings("view", self.view_dataset, fps["embed_image:view_encoder"])
         if self.captions.num_rows == 0:
             raise QueryError(
@@ -98,7 +101,8 @@ class StoreTables:
             )
 
     # ------------------------------------------------------------------ embeddings (cached)
-    def _embeddings(self, kind: str, dataset: str, fp: str) -> pa.Table:
+    def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:
+        """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``, cached."""
         key = fingerprint(
             {
                 "kind": kind,
@@ -106,6 +110,7 @@ class StoreTables:
                 "parts": [p.name for p in self.store.parts(dataset)],
                 "meshes": [p.name for p in self.store.parts("meshes")],
                 "sql": load_sql(f"query_{kind}_embeddings") + load_sql("query_active_meshes"),
+                "layout": (getattr(layout, "__name__", None), SLICES),
             }
         )
         cache = self._cache_path(kind, key)
@@ -122,7 +127,7 @@ class StoreTables:
             load_sql(f"query_{kind}_embeddings"), params={"fingerprint": fp}
         ).to_arrow_table()
         self.con.unregister(f"query_{kind}_source")
-        table = table.combine_chunks()
+        table = layout(table) if layout is not None else table.combine_chunks()
         if cache is not None and table.num_rows >= CACHE_MIN_ROWS:
             _write_ipc_atomic(table, cache, stale=cache.parent.glob(f"{kind}-*.arrow"))
         return table
