@@ -241,3 +241,15 @@ def test_subprocess_exit_code_and_fast_help(tmp_path):
         and bad.stderr.count("\n") == 1
         and bad.stderr.startswith("error: image not found")
     )
+
+
+def test_model_that_cannot_be_loaded_is_one_line(tmp_path, photo, capsys):
+    from pipeline.profiles import get_profile
+
+    models = {r: (s.key() if s else None) for r, s in get_profile("offline").roles().items()}
+    models["text_encoder"] = "minilm:/nonexistent/minilm"
+    store = make_fake_store(tmp_path / "s", models=models)
+    argv = ["--store", store, "--image", photo / "can.png", "--prompt", "the red can", "--box", "1,1,60,60"]
+    code, _, err = run([*argv, "--model", "text_encoder=/nonexistent/minilm"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1
+    assert err.startswith("error: ") and "/nonexistent/minilm" in err

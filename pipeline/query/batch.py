@@ -1,7 +1,7 @@
 """``--queries file.jsonl``: many queries with the models loaded once, one JSON line out per line in.
 
 Input lines: ``{"image": PATH, "prompt": TEXT, "box": [x0, y0, x1, y1] | "x0,y0,x1,y1", "mask": PATH,
-"id": ANY}`` (box, mask and id optional; relative paths are relative to the JSONL file). Output lines carry
+"id": ANY}`` (box, mask and id optional, ``query_id`` is accepted for ``id``; relative paths are relative to the JSONL file). Output lines carry
 ``id`` (the line number when absent) and either the full result or ``error``; a bad line never stops the
 batch.
 """
@@ -37,7 +37,7 @@ def read_queries(path: str | Path) -> Iterator[tuple[object, dict | None, str | 
         if not isinstance(item, dict):
             yield n, None, f"line {n} must be a JSON object"
             continue
-        qid = item.get("id", n)
+        qid = item.get("id", item.get("query_id", n))
         missing = [k for k in ("image", "prompt") if k not in item]
         if missing:
             yield qid, None, f"line {n} lacks {' and '.join(missing)}"

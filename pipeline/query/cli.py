@@ -60,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--threshold",
         type=float,
         metavar="TAU",
-        help="stage-1 tau (paper profile: 0.37; offline: see docs/query.md)",
+        help="stage-1 tau (default: paper 0.37, offline 0.50; see docs/query.md)",
     )
     how.add_argument(
         "--fallback-k",
