@@ -10,7 +10,7 @@ from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_
 from pipeline.ray_options import RayOptions
 
 #: Bump when rendering code changes in a way that changes pixels.
-RENDER_VERSION = "pyrender-3"
+RENDER_VERSION = "pyrender-5"
 #: Bump when the offline attribute captioner's wording changes.
 STAGES = ("render", "caption", "embed_text", "embed_image")
 GRAY = (205, 205, 205)

@@ -84,6 +84,45 @@ def _bars(progress: bool, plan: Plan):
     }
 
 
+def _prefetch(source: Iterator, maxsize: int) -> Iterator:
+    """Drain ``source`` in a thread so render workers keep busy while this thread captions and embeds."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=max(1, maxsize))
+    stop = threading.Event()
+    done = object()
+
+    def pump() -> None:
+        try:
+            for item in source:
+                while not stop.is_set():
+                    try:
+                        q.put(("item", item), timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(("end", done))
+        except BaseException as exc:  # re-raised in the consumer
+            q.put(("error", exc))
+
+    t = threading.Thread(target=pump, name="render-prefetch", daemon=True)
+    t.start()
+    try:
+        while True:
+            kind, value = q.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        stop.set()
+        t.join(timeout=5)
+
+
 class LocalExecutor:
     """Runs a :class:`Plan` in this process; models are built once and reused across batches."""
 
@@ -214,7 +253,7 @@ class LocalExecutor:
 
         pool = RenderPool(self.cfg, self.run_id, min(self.cfg.workers, len(items)), self.cfg.render_timeout_s)
         try:
-            yield from pool.map(items)
+            yield from _prefetch(pool.map(items), maxsize=2 * self.cfg.batch_size)
         finally:
             pool.close()
 
