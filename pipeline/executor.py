@@ -251,11 +251,16 @@ class LocalExecutor:
             return
         from pipeline.workers import RenderPool
 
+        t0 = time.perf_counter()
         pool = RenderPool(self.cfg, self.run_id, min(self.cfg.workers, len(items)), self.cfg.render_timeout_s)
         try:
             yield from _prefetch(pool.map(items), maxsize=2 * self.cfg.batch_size)
         finally:
             pool.close()
+            # wall time of the render pool, start-up included; "render" is the main thread's wait for it
+            self.seconds["render_pool_wall"] = (
+                self.seconds.get("render_pool_wall", 0.0) + time.perf_counter() - t0
+            )
 
     def _rendered_batches(self, plan: Plan, bar, summary: RunSummary):
         if not plan.render:
