@@ -4,7 +4,7 @@
 
 Onboards the library into a fresh store once per engine through the real CLI (subprocesses, so Python
 and Ray start-up, model loading and commits are all counted), checks that both stores hold the same
-tables, and prints Markdown (paste into docs/perf/engines.md). Per-stage seconds are what each engine
+tables, and prints Markdown (paste into docs/performance.md (Engines)). Per-stage seconds are what each engine
 reports: the local engine times its render pool by wall clock and the model stages in its main process;
 the Ray engine sums the busy seconds of its actors (the cost of a stage, whatever the parallelism).
 """

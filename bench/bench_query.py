@@ -6,7 +6,7 @@ the latency of one query broken into model load, ROI, embedding, stage 1 and sta
 Synthetic stores (8 captions per model, 512-d, L2-normalised, clustered per model like real caption
 embeddings) are written under ``--workdir`` once and reused. Stage 1 runs ``sql/stage1_text_filter.sql``
 over several storage layouts; every layout's ranking is compared with NumPy's (same tau, same
-tie-breaking). Results: docs/perf/query.md.
+tie-breaking). Results: docs/performance.md (Query).
 """
 
 from __future__ import annotations

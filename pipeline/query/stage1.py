@@ -7,7 +7,7 @@ Layout: every caption vector is cut into ``SLICES`` equal slices, stored as colu
 (``FLOAT[dim/8]``, zero-padded when dim is not a multiple of 8), and the SQL sums eight
 ``list_dot_product`` calls. DuckDB's dot product is one dependent chain of float additions per row; eight
 short chains instead of one long one let the CPU overlap them, which cuts stage 1's CPU time by about a
-third at 1M rows (docs/perf/query.md). The sum is the same inner product up to float rounding (~1e-7).
+third at 1M rows (docs/performance.md (Query)). The sum is the same inner product up to float rounding (~1e-7).
 """
 
 from __future__ import annotations
