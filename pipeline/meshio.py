@@ -101,7 +101,9 @@ def quick_face_count(path: str, fmt: str) -> int | None:
                     if not parts or parts[0] == b"end_header":
                         return None
             elif fmt == "off":
-                lines = [ln for ln in (fh.readline() for _ in range(50)) if ln.strip() and not ln.startswith(b"#")]
+                lines = [
+                    ln for ln in (fh.readline() for _ in range(50)) if ln.strip() and not ln.startswith(b"#")
+                ]
                 head = lines[0].split()
                 counts = head[1:] if head[0].upper().endswith(b"OFF") and len(head) > 1 else lines[1].split()
                 return int(counts[1])
@@ -150,6 +152,8 @@ def _shrink_texture(geom, max_edge: int) -> None:
                 img = img.reduce(factor)
             if max(img.size) > max_edge:
                 s = max_edge / max(img.size)
-                img = img.resize((max(1, round(img.size[0] * s)), max(1, round(img.size[1] * s))), Image.BILINEAR)
+                img = img.resize(
+                    (max(1, round(img.size[0] * s)), max(1, round(img.size[1] * s))), Image.BILINEAR
+                )
             new = img
             setattr(material, attr, new)

@@ -12,8 +12,15 @@ from pipeline.store import Store, latest_rows
 def _captions(ids, run_id, text):
     n = len(ids)
     return pa.table(
-        {"mesh_id": ids, "view_index": pa.array([0] * n, pa.int16()), "captioner_id": ["c"] * n,
-         "caption": [text] * n, "fingerprint": ["fp"] * n, "view_fingerprint": ["v"] * n, "run_id": [run_id] * n}
+        {
+            "mesh_id": ids,
+            "view_index": pa.array([0] * n, pa.int16()),
+            "captioner_id": ["c"] * n,
+            "caption": [text] * n,
+            "fingerprint": ["fp"] * n,
+            "view_fingerprint": ["v"] * n,
+            "run_id": [run_id] * n,
+        }
     )
 
 

@@ -47,7 +47,9 @@ class Detector(Protocol):
 
     model_id: str
 
-    def detect(self, image: Image.Image, prompt: str) -> list[tuple[tuple[float, float, float, float], float]]: ...
+    def detect(
+        self, image: Image.Image, prompt: str
+    ) -> list[tuple[tuple[float, float, float, float], float]]: ...
 
 
 @runtime_checkable
