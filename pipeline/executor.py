@@ -138,8 +138,8 @@ class LocalExecutor:
         self.fps = cfg.fingerprints()
 
     # ------------------------------------------------------------------ run
-    def run(self, library: str) -> RunSummary:
-        t0 = time.perf_counter()
+    def _begin(self, library: str) -> tuple[Plan, RunSummary]:
+        """Plan the run, commit what discovery found, and start the summary (shared by every engine)."""
         summary = RunSummary(self.run_id)
         with _Timer(self.seconds, "discover"):
             plan = make_plan(self.store, library, self.cfg, self.text_slug, self.image_slugs)
@@ -149,9 +149,20 @@ class LocalExecutor:
         summary.failed_before = plan.failed_before
         summary.removed = len(plan.removed_rows)
         summary.added = sum(len(v) for v in plan.new_paths.values())
-        self._commit_discovery(plan)
-        self._load_models(plan)
         summary.failed += len(plan.discover_errors)
+        self._commit_discovery(plan)
+        return plan, summary
+
+    def _finish(self, summary: RunSummary, t0: float) -> RunSummary:
+        summary.captioned = self.captioned
+        summary.seconds = {k: round(v, 3) for k, v in self.seconds.items()}
+        summary.total_seconds = round(time.perf_counter() - t0, 3)
+        return summary
+
+    def run(self, library: str) -> RunSummary:
+        t0 = time.perf_counter()
+        plan, summary = self._begin(library)
+        self._load_models(plan)
         bars = _bars(self.progress, plan)
         try:
             for views, meshes_rows in self._rendered_batches(plan, bars["render"], summary):
@@ -165,10 +176,7 @@ class LocalExecutor:
         finally:
             for b in bars.values():
                 b.close()
-        summary.captioned = self.captioned
-        summary.seconds = {k: round(v, 3) for k, v in self.seconds.items()}
-        summary.total_seconds = round(time.perf_counter() - t0, 3)
-        return summary
+        return self._finish(summary, t0)
 
     def _load_models(self, plan: Plan) -> None:
         """Build the models this run needs before any rendering, so a missing weight fails fast."""

@@ -24,7 +24,7 @@ import pyarrow.compute as pc
 from pipeline import schemas
 from pipeline.config import OnboardConfig
 from pipeline.executor import LocalExecutor, RunSummary, _bars, _Timer
-from pipeline.plan import Plan, make_plan
+from pipeline.plan import Plan
 from pipeline.ray_options import RayOptions
 from pipeline.ray_workers import TIMING_COLUMNS, row_schema, unpack
 from pipeline.store import Store, utcnow
@@ -89,17 +89,7 @@ class RayExecutor(LocalExecutor):
     # ------------------------------------------------------------------ run
     def run(self, library: str) -> RunSummary:
         t0 = time.perf_counter()
-        summary = RunSummary(self.run_id)
-        with _Timer(self.seconds, "discover"):
-            plan = make_plan(self.store, library, self.cfg, self.text_slug, self.image_slugs)
-        summary.n_files = len(plan.files) + len(plan.discover_errors)
-        summary.hashed = plan.n_hashed
-        summary.skipped = plan.skipped
-        summary.failed_before = plan.failed_before
-        summary.removed = len(plan.removed_rows)
-        summary.added = sum(len(v) for v in plan.new_paths.values())
-        self._commit_discovery(plan)
-        summary.failed += len(plan.discover_errors)
+        plan, summary = self._begin(library)
         items = self._items(plan)
         if items:
             bars = _bars(self.progress, plan)
@@ -116,10 +106,7 @@ class RayExecutor(LocalExecutor):
             finally:
                 for b in bars.values():
                     b.close()
-        summary.captioned = self.captioned
-        summary.seconds = {k: round(v, 3) for k, v in self.seconds.items()}
-        summary.total_seconds = round(time.perf_counter() - t0, 3)
-        return summary
+        return self._finish(summary, t0)
 
     # ------------------------------------------------------------------ inputs
     def _items(self, plan: Plan) -> list[dict]:
