@@ -273,9 +273,7 @@ class LocalExecutor:
     def _rendered_batches(self, plan: Plan, bar, summary: RunSummary):
         if not plan.render:
             return
-        first_file = {}
-        for f in plan.files:
-            first_file.setdefault(f.mesh_id, f)
+        first_file = plan.file_of()
         items = [
             {"mesh_id": m, "abs_path": first_file[m].abs_path, "format": first_file[m].format}
             for m in plan.render

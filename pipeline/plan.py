@@ -34,6 +34,13 @@ class Plan:
     failed_before: int = 0  # meshes skipped because they failed with the same config before
     n_hashed: int = 0
 
+    def file_of(self) -> dict[str, FoundFile]:
+        """mesh_id -> the first file (in library order) with that content: the one rendered."""
+        out: dict[str, FoundFile] = {}
+        for f in self.files:
+            out.setdefault(f.mesh_id, f)
+        return out
+
     def downstream_ids(self) -> list[str]:
         """Meshes that need caption or embedding work but no rendering, in library order."""
         pending = self.caption | self.embed_text | set().union(*self.embed_image.values())

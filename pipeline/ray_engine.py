@@ -111,9 +111,7 @@ class RayExecutor(LocalExecutor):
     # ------------------------------------------------------------------ inputs
     def _items(self, plan: Plan) -> list[dict]:
         """One row per mesh with work: what to render, which stages it needs, where stored inputs are."""
-        first_file = {}
-        for f in plan.files:
-            first_file.setdefault(f.mesh_id, f)
+        first_file = plan.file_of()
         rows = []
         for m in plan.render:
             f = first_file[m]
