@@ -6,13 +6,14 @@ import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 
+from pipeline.localfeat.config import FeatureConfig
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
 from pipeline.ray_options import RayOptions
 
 #: Bump when rendering code changes in a way that changes pixels.
 RENDER_VERSION = "pyrender-5"
 #: Bump when the offline attribute captioner's wording changes.
-STAGES = ("render", "caption", "embed_text", "embed_image")
+STAGES = ("render", "caption", "embed_text", "embed_image", "features")
 GRAY = (205, 205, 205)
 
 
@@ -58,6 +59,7 @@ class OnboardConfig:
     engine: str = "local"
     model_options: dict[str, dict] = field(default_factory=dict)  # per-role extra adapter options
     ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
+    features: FeatureConfig = field(default_factory=FeatureConfig)  # local features per view (verification)
 
     def __post_init__(self) -> None:
         if self.prompt_style not in PROMPT_STYLES:
@@ -94,6 +96,8 @@ class OnboardConfig:
                 {"model": p.text_encoder.key(), "opts": p.text_encoder.options, "in": caption_fp}
             ),
         }
+        if self.features.enabled:
+            fps["features"] = self.features.fingerprint(render_fp)
         for role in self.image_roles():
             spec = getattr(p, role)
             fps[f"embed_image:{role}"] = fingerprint(
@@ -110,6 +114,7 @@ class OnboardConfig:
             "prompt_style": self.prompt_style,
             "prompt": self.prompt,
             "render": asdict(self.render),
+            "features": asdict(self.features),
             "max_faces": self.max_faces,
             "render_timeout_s": self.render_timeout_s,
             "fingerprints": self.fingerprints(),

@@ -15,6 +15,7 @@ from pipeline import schemas
 from pipeline.config import OnboardConfig
 from pipeline.plan import Plan, encoder_slugs, make_plan
 from pipeline.stages import CaptionStage, ImageEmbedStage, RenderStage, TextEmbedStage, split_errors
+from pipeline.stages.features import FeatureStage
 from pipeline.stages.render import RENDER_OUT
 from pipeline.store import Store, new_run_id, utcnow
 
@@ -132,6 +133,7 @@ class LocalExecutor:
         self.caption = CaptionStage(cfg, run_id, model=models.get("captioner"))
         self.text = TextEmbedStage(cfg, run_id, model=models.get("text_encoder"))
         self.images = {r: ImageEmbedStage(cfg, run_id, r, model=models.get(r)) for r in cfg.image_roles()}
+        self.features = FeatureStage(cfg, run_id) if cfg.features.enabled else None
         self.text_slug, self.image_slugs = encoder_slugs(cfg)
         self.seconds: dict[str, float] = {}
         self.captioned = 0
@@ -384,6 +386,14 @@ class LocalExecutor:
             img_done |= set(img_ids)
         bars["embed_image"].update(len(img_done))
 
+        feat_ids = [m for m in ids if m in plan.features and m not in failed]
+        if feat_ids and self.features is not None:
+            out = self._features_output(views, feat_ids, computed)
+            rows, errs = split_errors(out, schemas.VIEW_FEATURES, "features", self.run_id, paths)
+            errors.append(errs)
+            failed |= set(errs.column("mesh_id").to_pylist())
+            tables["view_features"] = rows
+
         if meshes_rows:
             tables["meshes"] = pa.Table.from_pylist(meshes_rows, schema=schemas.MESHES)
         errs = [e for e in errors if e.num_rows]
@@ -403,6 +413,23 @@ class LocalExecutor:
         if missing:
             raise RuntimeError(f"{key}: no computed rows for {len(missing)} mesh(es), e.g. {min(missing)}")
         return out.filter(pc.field("mesh_id").isin(ids))
+
+    def _features_output(self, views: pa.Table, ids: list[str], computed: dict | None) -> pa.Table:
+        """The features stage's rows for ``ids`` (another engine's if it computed them, else run here on
+        this batch's views, or on the stored views where the batch carries none)."""
+        if computed is not None and "features" in computed:
+            return self._stage_output("features", self.features, ids, None, computed)
+        with _Timer(self.seconds, "features"):
+            if "image" in views.column_names:
+                src = views.filter(pc.field("mesh_id").isin(ids))
+                have = set(src.column("mesh_id").to_pylist())
+            else:
+                src, have = None, set()
+            rest = [m for m in ids if m not in have]
+            if rest:
+                more = self._stored_views(rest)
+                src = more if src is None else pa.concat_tables([schemas.conform(src, schemas.VIEWS), more])
+            return self.features(src)
 
     def _text_input(self, captions: pa.Table | None, txt_ids: list[str]) -> pa.Table:
         """Captions to embed: this batch's, plus stored ones for meshes not captioned in this batch."""

@@ -62,6 +62,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--retry-failed", action="store_true", help="retry meshes that failed with the same config"
     )
+    p.add_argument(
+        "--local-features",
+        default="sift",
+        choices=["sift", "orb", "none"],
+        help="local features stored per view for query-time verification (default: sift; none: skip the stage)",
+    )
+    p.add_argument(
+        "--max-keypoints", type=int, default=256, help="local features kept per view (default: 256)"
+    )
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="executor (default: local)")
     p.add_argument(
         "--address",
@@ -87,6 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     from pathlib import Path
 
     from pipeline.config import OnboardConfig, RenderConfig
+    from pipeline.localfeat import FeatureConfig
     from pipeline.ray_options import RayOptions
 
     if not Path(args.library).is_dir():
@@ -109,6 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             retry_failed=args.retry_failed,
             force=tuple(args.force),
             engine=args.engine,
+            features=FeatureConfig(detector=args.local_features, max_keypoints=args.max_keypoints),
             ray=RayOptions(
                 address=args.address,
                 render_workers=args.ray_render_workers,

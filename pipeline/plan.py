@@ -30,6 +30,7 @@ class Plan:
     caption: set[str] = field(default_factory=set)
     embed_text: set[str] = field(default_factory=set)
     embed_image: dict[str, set[str]] = field(default_factory=dict)  # role -> mesh_ids
+    features: set[str] = field(default_factory=set)  # mesh_ids that need view_features rows
     skipped: int = 0  # meshes with nothing left to do
     failed_before: int = 0  # meshes skipped because they failed with the same config before
     n_hashed: int = 0
@@ -43,7 +44,7 @@ class Plan:
 
     def downstream_ids(self) -> list[str]:
         """Meshes that need caption or embedding work but no rendering, in library order."""
-        pending = self.caption | self.embed_text | set().union(*self.embed_image.values())
+        pending = self.caption | self.embed_text | set().union(*self.embed_image.values()) | self.features
         order = list(dict.fromkeys(f.mesh_id for f in self.files))
         render = set(self.render)
         return [m for m in order if m in pending and m not in render]
@@ -151,7 +152,17 @@ def make_plan(
         plan.embed_image[role] = (
             (todo(f"image_embeddings/{s}", fp, "embed_image") | need_render) & ok
         ) - failed.get(fp, set())
-    busy = set(plan.render) | plan.caption | plan.embed_text | set().union(*plan.embed_image.values())
+    if "features" in fps:
+        plan.features = ((todo("view_features", fps["features"], "features") | need_render) & ok) - failed.get(
+            fps["features"], set()
+        )
+    busy = (
+        set(plan.render)
+        | plan.caption
+        | plan.embed_text
+        | set().union(*plan.embed_image.values())
+        | plan.features
+    )
     plan.failed_before = len(
         {m for m in ids if m in bad_render or any(m in failed.get(fp, ()) for fp in fps.values())} - busy
     )

@@ -67,6 +67,22 @@ CAPTIONS = pa.schema(
 )
 
 
+VIEW_FEATURES = pa.schema(
+    [
+        pa.field("mesh_id", pa.string(), nullable=False),
+        pa.field("view_index", pa.int16(), nullable=False),
+        pa.field("detector_id", pa.string(), nullable=False),  # e.g. "opencv:sift-256@384"
+        pa.field("n_keypoints", pa.int32(), nullable=False),
+        pa.field("keypoints", pa.list_(pa.float32())),  # x0, y0, x1, y1, ... in the working frame
+        pa.field("descriptor_dim", pa.int16(), nullable=False),  # bytes per keypoint (SIFT 128, ORB 32)
+        pa.field("descriptors", pa.binary()),  # n_keypoints x descriptor_dim uint8, row-major
+        pa.field("fingerprint", pa.string(), nullable=False),  # features config + render fingerprint
+        pa.field("source_fingerprint", pa.string(), nullable=False),  # the view's render fingerprint
+        pa.field("run_id", pa.string(), nullable=False),
+    ]
+)
+
+
 def embedding_schema(dim: int) -> pa.Schema:
     """Schema of one encoder's partition of ``text_embeddings`` or ``image_embeddings``."""
     return pa.schema(
@@ -88,7 +104,7 @@ ERRORS = pa.schema(
         pa.field("run_id", pa.string(), nullable=False),
         pa.field(
             "stage", pa.string(), nullable=False
-        ),  # discover | render | caption | embed_text | embed_image
+        ),  # discover | render | caption | embed_text | embed_image | features
         pa.field("mesh_id", pa.string()),
         pa.field("source_path", pa.string()),
         pa.field("fingerprint", pa.string()),
@@ -122,6 +138,7 @@ TABLES: dict[str, pa.Schema] = {
     "meshes": MESHES,
     "views": VIEWS,
     "captions": CAPTIONS,
+    "view_features": VIEW_FEATURES,
     "errors": ERRORS,
     "runs": RUNS,
 }
@@ -132,6 +149,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "meshes": ("library_root", "source_path", "mesh_id"),
     "views": ("mesh_id", "view_index", "fingerprint"),
     "captions": ("mesh_id", "view_index", "fingerprint"),
+    "view_features": ("mesh_id", "view_index", "fingerprint"),
     "text_embeddings": ("mesh_id", "view_index", "fingerprint"),
     "image_embeddings": ("mesh_id", "view_index", "fingerprint"),
 }

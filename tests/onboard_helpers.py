@@ -20,7 +20,8 @@ def content(store_path, table_filter=lambda d: d.split("/")[0] != "runs") -> dic
     """Every dataset's rows without run-dependent columns, sorted: equal stores compare equal."""
     s = Store.open(store_path)
     out = {}
-    for table in ("meshes", "views", "captions", "errors", "text_embeddings", "image_embeddings"):
+    tables = ("meshes", "views", "captions", "view_features", "errors", "text_embeddings", "image_embeddings")
+    for table in tables:
         for d in s.datasets(table):
             if not table_filter(d):
                 continue

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 
@@ -50,6 +51,37 @@ def test_tables_schemas_and_counts(built):
         assert np.allclose(np.linalg.norm(vecs, axis=1), 1.0, atol=1e-4)
     runs = s.read("runs")
     assert runs.num_rows == 1 and runs.column("status")[0].as_py() == "ok"
+
+
+def test_view_features_stage(built):
+    _, store, _ = built
+    s = Store.open(store)
+    feats = s.read("view_features")
+    assert feats.schema.equals(schemas.VIEW_FEATURES) and feats.num_rows == 24
+    fp = json.loads(s.read("runs").column("config_json")[0].as_py())["fingerprints"]["features"]
+    assert set(feats.column("fingerprint").to_pylist()) == {fp}
+    n = feats.column("n_keypoints").to_numpy()
+    assert (n >= 5).all() and (n <= 256).all() and n.max() > 100
+    sizes = [len(b) for b in feats.column("descriptors").to_pylist()]
+    assert sizes == [k * 128 for k in n.tolist()]
+
+
+def test_feature_config_change_recomputes_only_features(tmp_path, offline_models):
+    from pipeline.localfeat import FeatureConfig
+
+    lib = copy_ycb(tmp_path / "lib", MESHES[:1])
+    store = tmp_path / "store"
+    onboard(lib, store, offline_models)
+    before = content(store, lambda d: d.split("/")[0] not in ("runs", "view_features"))
+    summary = onboard(lib, store, offline_models, features=FeatureConfig(max_keypoints=64))
+    assert summary.rendered == 0 and summary.captioned == 0 and summary.skipped == 0
+    assert content(store, lambda d: d.split("/")[0] not in ("runs", "view_features")) == before
+    s = Store.open(store)
+    assert s.read("view_features").num_rows == 16
+    assert max(s.read_latest("view_features").column("n_keypoints").to_pylist()) <= 64
+    # detector "none": no features stage at all
+    summary = onboard(lib, store, offline_models, features=FeatureConfig(detector="none"))
+    assert summary.skipped == 1 and Store.open(store).read("view_features").num_rows == 16
 
 
 def test_views_layout_and_object_centred(built):

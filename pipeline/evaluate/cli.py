@@ -70,6 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="synthetic/BOP prompt; {name} = mesh name without its id (default: %(default)r)",
     )
     src.add_argument("--limit", type=int, help="evaluate only the first N queries")
+    src.add_argument(
+        "--boxes-only",
+        action="store_true",
+        help="ignore the queries' masks: box-only ROIs (a mask-only query uses its mask's box)",
+    )
     src.add_argument("--bop-objects", metavar="JSON", help="BOP object id -> mesh (and prompt, label) map")
     src.add_argument("--bop-min-visib", type=float, default=0.1, help="skip BOP instances less visible")
     src.add_argument("--bop-max-per-object", type=int, help="at most N BOP queries per object id")
@@ -105,6 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--fallback-k", type=int, default=10, help="stage-1 top-k when none passes tau (default: 10)"
     )
     base.add_argument("--roi", default="segm", choices=["segm", "bbox"], help="ROI variant (default: segm)")
+    base.add_argument(
+        "--verify",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="local-feature verification of the top candidates (default: the profile's; offline: on)",
+    )
+    base.add_argument("--verify-top", type=int, help="candidates verified per query (default: 20)")
     sw = p.add_argument_group("sweeps")
     sw.add_argument(
         "--taus", type=_floats, default=None, help="tau values, e.g. 0.10:0.65:0.05 (the default)"
@@ -186,13 +198,20 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     queries, source = _queries(args, library, out)
     if args.limit:
         queries = queries[: args.limit]
+    if args.boxes_only:
+        from pipeline.evaluate.datasets import drop_mask
+
+        queries = [drop_mask(q) for q in queries]
     if not queries:
         return fail(f"no queries in {source}")
     overrides = model_overrides(args)
     progress = not args.no_progress
     say = print if progress else (lambda *a, **k: None)
     say(f"{len(queries)} queries, {len(library)} library meshes; loading the {args.profile} models")
-    engine = Engine.open(args.store, args.profile, overrides, args.device)
+    if args.verify_top is not None and args.verify_top < 0:
+        return fail("--verify-top must be >= 0")
+    changes = {"verify": args.verify, "verify_top": args.verify_top}
+    engine = Engine.open(args.store, args.profile, overrides, args.device, settings_changes=changes)
     base = Setting(args.mode, args.tau, args.fallback_k, args.roi)
     plan = SweepPlan(base=base)
     for name in ("taus", "top_ks", "modes", "rois"):

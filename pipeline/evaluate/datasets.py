@@ -7,6 +7,9 @@ JSONL, one object per line (paths relative to the file's folder)::
      "box": [x0, y0, x1, y1], "mask": "masks/q1.png",
      "expected": "006_mustard_bottle/textured.obj", "label": "006"}
 
+Paths may start with ``$OSCAR_SHARED_DATA/``: the data root holding the shared photos and meshes (the
+environment variable), so query files in the repository never depend on where a clone sits.
+
 ``expected`` names the expected mesh by path (relative to the library root, or absolute), mesh_id or mesh
 name, and may be a list when several meshes are correct. ``expected_mesh_id`` / ``expected_path`` are
 accepted too. CSV uses the same column names, with the box as ``x0 y0 x1 y1`` (or columns x0, y0, x1, y1).
@@ -21,6 +24,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 QUERY_FILE_SUFFIXES = (".jsonl", ".json", ".csv")
+#: environment variable naming the shared data root (photos, meshes); query paths may start with ``$NAME/``
+DATA_ROOT_VAR = "OSCAR_SHARED_DATA"
 
 
 @dataclass
@@ -63,6 +68,23 @@ def load_queries(path: str | os.PathLike, **bop_options) -> list[Query]:
     raise QueryFileError(
         f"{p}: unknown query file type; use {', '.join(QUERY_FILE_SUFFIXES)} or a BOP folder"
     )
+
+
+def drop_mask(q: Query) -> Query:
+    """``q`` as a box-only query: its mask is dropped (a mask-only query gets the mask's box)."""
+    if q.mask is None:
+        return q
+    box = q.box
+    if box is None:
+        import numpy as np
+        from PIL import Image
+
+        with Image.open(q.mask) as m:
+            ys, xs = np.nonzero(np.asarray(m.convert("L")) > 0)
+        box = (
+            (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)) if len(xs) else None
+        )
+    return Query(q.query_id, q.image, q.prompt, q.expected, box, None, q.label, dict(q.meta))
 
 
 def write_queries(queries: list[Query], path: str | os.PathLike) -> None:
@@ -134,6 +156,20 @@ def _expected(row: dict) -> list[str]:
     return out
 
 
+def resolve_path(raw: str, base: Path, where: str) -> Path:
+    """A query file's path: ``$OSCAR_SHARED_DATA/...`` under the data root, else relative to ``base``."""
+    prefix = f"${DATA_ROOT_VAR}"
+    if raw.startswith((prefix + "/", "${" + DATA_ROOT_VAR + "}/")):
+        root = os.environ.get(DATA_ROOT_VAR)
+        if not root:
+            raise QueryFileError(
+                f"{where}: {raw} is under the data root, but {DATA_ROOT_VAR} is not set "
+                f"(export {DATA_ROOT_VAR}=/path/to/shared/data)"
+            )
+        return (Path(root) / raw.split("/", 1)[1]).resolve()
+    return (base / raw).resolve()
+
+
 def _from_rows(rows: list[tuple[int, dict]], p: Path) -> list[Query]:
     base = p.parent.resolve()
     queries = []
@@ -152,10 +188,10 @@ def _from_rows(rows: list[tuple[int, dict]], p: Path) -> list[Query]:
         box_raw = row.get("box")
         if box_raw in (None, "") and all(row.get(k) not in (None, "") for k in ("x0", "y0", "x1", "y1")):
             box_raw = [row["x0"], row["y0"], row["x1"], row["y1"]]
-        img = (base / image).resolve()
+        img = resolve_path(str(image), base, where)
         if not img.is_file():
             raise QueryFileError(f"{where}: image not found: {img}")
-        mask = (base / row["mask"]).resolve() if row.get("mask") else None
+        mask = resolve_path(str(row["mask"]), base, where) if row.get("mask") else None
         if mask is not None and not mask.is_file():
             raise QueryFileError(f"{where}: mask not found: {mask}")
         known = {"query_id", "image", "prompt", "box", "mask", "label", "meta", "x0", "y0", "x1", "y1"}

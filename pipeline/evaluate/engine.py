@@ -77,11 +77,17 @@ class Engine:
         model_overrides: dict | None = None,
         device: str | None = None,
         models: dict | None = None,
+        settings_changes: dict | None = None,
     ) -> Engine:
         from pipeline.query import Retriever
 
         r = Retriever.open(
-            store_path, profile=profile, model_overrides=model_overrides or None, device=device, models=models
+            store_path,
+            profile=profile,
+            model_overrides=model_overrides or None,
+            device=device,
+            models=models,
+            settings_changes=settings_changes,
         )
         return cls(r, store_path)
 
@@ -111,7 +117,7 @@ class Engine:
         seconds = time.perf_counter() - t0
         cands = list(res.candidates)
         text = [_f(getattr(c, "text_score", None)) for c in cands]
-        image = [_f(getattr(c, "image_score", None)) for c in cands]
+        image = [_f(_fused(c)) for c in cands]
         return Ranked(
             ids=[c.mesh_id for c in cands],
             scores=[_sort_key(setting.mode, t, i) for t, i in zip(text, image, strict=True)],
@@ -133,6 +139,12 @@ def _sort_key(mode: str, text: float | None, image: float | None):
     t = nan if text is None else text
     i = nan if image is None else image
     return {"text-only": t, "image-only": i}.get(mode, (i, t))
+
+
+def _fused(c):
+    """The image-side score a candidate was ranked by: fused with local features when it was verified."""
+    score = getattr(c, "score", None)
+    return score if score is not None else getattr(c, "image_score", None)
 
 
 def _f(x) -> float | None:

@@ -23,6 +23,7 @@ import numpy as np
 from pipeline.config import RenderConfig
 from pipeline.evaluate.backgrounds import BACKGROUND_KINDS, make_background
 from pipeline.evaluate.datasets import Query, write_queries
+from pipeline.evaluate.degrade import DegradeConfig
 from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN, MeshRef, class_of
 from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE, prompt_for
 
@@ -53,6 +54,7 @@ class SynthConfig:
     onboarding: RenderConfig = field(default_factory=RenderConfig)  # its views are avoided
     max_faces: int = 2_000_000
     max_texture: int = 1024
+    degrade: DegradeConfig | None = None  # the harder set (``--hard``): camera effects, occluders, loose ROIs
 
     def __post_init__(self) -> None:
         bad = [b for b in self.backgrounds if b not in BACKGROUND_KINDS]
@@ -228,19 +230,31 @@ def generate(
                 image = np.where(mask[:, :, None], rgb, bg)
                 qid = f"{_safe(m.name)}-{i:02d}"
                 img_path, mask_path = out / "images" / f"{qid}.png", out / "masks" / f"{qid}.png"
+                extra: dict = {}
+                query_mask = mask
+                if cfg.degrade is not None:  # its own random stream: the base set's draws stay the same
+                    image, query_mask, extra = _degrade(image, mask, cfg, m.source_path, i, photos)
                 Image.fromarray(image).save(img_path)
-                Image.fromarray(mask.astype(np.uint8) * 255).save(mask_path)
-                ys, xs = np.nonzero(mask)
+                Image.fromarray(query_mask.astype(np.uint8) * 255).save(mask_path)
+                ys, xs = np.nonzero(mask if cfg.degrade is None else extra.pop("_visible"))
+                box = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
+                if "_box" in extra:
+                    box = extra.pop("_box")
                 queries.append(
                     Query(
                         query_id=qid,
                         image=str(img_path.resolve()),
                         prompt=prompt_for(m.name, cfg.prompt_template, cfg.names),
                         expected=[m.mesh_id or m.source_path],
-                        box=(float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)),
+                        box=box,
                         mask=str(mask_path.resolve()),
                         label=class_of(m.name, cfg.class_pattern),
-                        meta={"source_path": m.source_path, "name": m.name, **_view_meta(view, mask)},
+                        meta={
+                            "source_path": m.source_path,
+                            "name": m.name,
+                            **_view_meta(view, mask),
+                            **extra,
+                        },
                     )
                 )
     finally:
@@ -251,6 +265,29 @@ def generate(
         json.dumps({"config": cfg_json, "n_queries": len(queries), "skipped": skipped}, indent=2, default=str)
     )
     return queries
+
+
+def _degrade(image, mask, cfg: SynthConfig, source_path: str, i: int, photos: list[Path]):
+    """The harder set's degradations of one query: (image, query mask, metadata incl. the visible mask and
+    the loose box under private keys)."""
+    from pipeline.evaluate.degrade import grow_mask, jitter_box, occlude, photometric
+
+    d = cfg.degrade
+    rng = mesh_rng(cfg.seed, f"{source_path}#hard-{i}")
+    visible, hidden = mask, 0.0
+    if rng.random() < d.occlusion_prob:
+        kind = "photo" if photos else "noise"
+        texture = make_background(kind, cfg.width, cfg.height, rng, photos)
+        occluded, vis, hid = occlude(image, mask, rng, d, texture)
+        if vis.sum() >= 0.35 * mask.sum():  # keep at least a third of the object in view
+            image, visible, hidden = occluded, vis, hid
+    image, meta = photometric(image, rng, d)
+    grow = int(rng.integers(d.mask_dilate_px[0], d.mask_dilate_px[1] + 1))
+    ys, xs = np.nonzero(visible)
+    tight = (float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1))
+    box = jitter_box(tight, mask.shape, rng, d.box_jitter)
+    meta.update({"occluded": round(hidden, 3), "mask_grow_px": grow, "_visible": visible, "_box": box})
+    return image, grow_mask(visible, grow), meta
 
 
 def _view_meta(view: SynthView, mask: np.ndarray) -> dict:

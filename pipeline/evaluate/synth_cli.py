@@ -44,6 +44,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="regex whose first group is the class label (default: %(default)r)",
     )
     p.add_argument("--size", default="640x480", help="image size WxH (default: %(default)s)")
+    p.add_argument(
+        "--hard",
+        action="store_true",
+        help="the harder set: white balance, exposure, blur, noise, JPEG, partial occluders, masks a few "
+        "pixels too large and loose boxes (use with --photo-dir and --backgrounds photo)",
+    )
     p.add_argument("--limit", type=int, help="only the first N meshes")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -53,6 +59,7 @@ def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
+    from pipeline.evaluate.degrade import DegradeConfig
     from pipeline.evaluate.library import read_folder_meshes, read_store_meshes
     from pipeline.evaluate.synth import SynthConfig, generate
     from pipeline.store import StoreError
@@ -70,6 +77,7 @@ def main(argv: list[str]) -> int:
             prompt_template=args.prompt_template,
             names=names,
             class_pattern=args.class_pattern or None,
+            degrade=DegradeConfig() if args.hard else None,
         )
         meshes = read_store_meshes(args.store) if args.store else read_folder_meshes(args.library)
     except (ValueError, OSError, StoreError) as exc:

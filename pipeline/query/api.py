@@ -25,6 +25,7 @@ from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
 from pipeline.query.stage1 import TextFilter
 from pipeline.query.stage2 import ViewReranker
+from pipeline.query.verify import LocalVerifier
 
 
 class Retriever:
@@ -43,6 +44,14 @@ class Retriever:
         self._models: dict[str, object] = dict(models or {})
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
+        from pipeline.localfeat.config import VerifyConfig
+
+        self.verifier = LocalVerifier(
+            store,
+            tables.onboarding,
+            tables.meshes.column("mesh_id").to_pylist(),
+            VerifyConfig(top=settings.verify_top, weight=settings.verify_weight),
+        )
         m = tables.meshes
         self._mesh_id = m.column("mesh_id").to_pylist()
         self._name = m.column("name").to_pylist()
@@ -160,6 +169,7 @@ class Retriever:
             background=s.background,
             min_side=s.min_roi_side,
             profile=self.profile.name,
+            box_segmenter=s.box_segmenter,
         )
         roi.notes.extend([] if photo.scale == 1.0 else [f"image downscaled by {photo.scale:.3f}"])
         roi.photo_source, roi.photo_size = photo.source, photo.original_size
@@ -169,7 +179,27 @@ class Retriever:
         """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         with_prompt = self.settings.prompt_weight > 0
-        return embed_roi(self.strategy, self.model, roi, prompt, with_prompt)
+        emb = embed_roi(self.strategy, self.model, roi, prompt, with_prompt)
+        if self.settings.verify and self.verifier.available:
+            emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
+        return emb
+
+    def _verified(self, emb: QueryEmbedding, mesh_idx, image, order, verify, timings):
+        """Fuse local-feature inliers into the top ``verify_top`` of ``order``: (new order, fused, inliers)."""
+        inl = np.full(len(mesh_idx), -1, np.int64)
+        fused = np.asarray(image, np.float32).copy()
+        on = self.settings.verify if verify is None else bool(verify)
+        if not on or emb.local is None or not len(order):
+            return order, fused, inl
+        top = order[: max(int(self.settings.verify_top), 0)]
+        cache, seconds = self.verifier.inliers(emb.local, [int(mesh_idx[j]) for j in top], emb.inliers)
+        timings["verify_ms"] = seconds * 1000
+        counts = np.array([cache[int(mesh_idx[j])][0] for j in top], np.int64)
+        inl[top] = counts
+        fused[top] += self.verifier.cfg.bonus(counts)
+        rest = np.full(len(order), len(order), np.int64)
+        rest[order] = np.arange(len(order))  # the global order breaks ties of the fused score
+        return np.lexsort((rest, -fused)), fused, inl
 
     def rank(
         self,
@@ -179,8 +209,12 @@ class Retriever:
         fallback_k: int = 10,
         top: int = 5,
         prompt_weight: float | None = None,
+        verify: bool | None = None,
     ) -> QueryResult:
-        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps)."""
+        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps).
+
+        ``verify`` (default: the settings') re-ranks the top candidates with local features when the
+        embedding carries the ROI's keypoints; inlier counts are cached on ``emb``."""
         if mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
         if int(top) < 1 or int(fallback_k) < 1:
@@ -196,7 +230,7 @@ class Retriever:
         timings: dict[str, float] = {}
         try:
             if mode == "image-only":
-                return self._rank_image_only(emb, top, tau, fallback_k, w, timings)
+                return self._rank_image_only(emb, top, tau, fallback_k, w, timings, verify)
             s1 = self.text_filter.run(
                 stage1_vector(emb, w),
                 None if mode == "text-only" else tau,
@@ -209,33 +243,43 @@ class Retriever:
             ) from None
         timings["stage1_ms"] = s1.seconds * 1000
         timings["stage2_ms"] = s2.seconds * 1000
+        fused, inl = s2.scores, np.full(len(s1.mesh_idx), -1, np.int64)
         if mode == "text-only":
             order = np.arange(len(s1.mesh_idx))
             decided, used_fallback = "stage1", False
         else:
             order = np.lexsort((s1.mesh_idx, -s1.scores, -s2.scores))
+            order, fused, inl = self._verified(emb, s1.mesh_idx, s2.scores, order, verify, timings)
             decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
         order = order[: int(top)]
         cands = [
-            self._candidate(i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j])
+            self._candidate(
+                i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j], inl[j], fused[j]
+            )
             for i, j in enumerate(order)
         ]
         return QueryResult(
             cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w
         )
 
-    def _rank_image_only(self, emb, top, tau, fallback_k, w, timings) -> QueryResult:
+    def _rank_image_only(self, emb, top, tau, fallback_k, w, timings, verify=None) -> QueryResult:
         s2 = self.reranker.score(emb.image_space, None)
         timings["stage1_ms"] = 0.0
         timings["stage2_ms"] = s2.seconds * 1000
         idx = np.arange(len(s2.scores))
-        order = np.lexsort((idx, -s2.scores))[: int(top)]
-        cands = [self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j]) for i, j in enumerate(order)]
+        order = np.lexsort((idx, -s2.scores))
+        order, fused, inl = self._verified(emb, idx, s2.scores, order, verify, timings)
+        order = order[: int(top)]
+        cands = [
+            self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j])
+            for i, j in enumerate(order)
+        ]
         return QueryResult(cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w)
 
-    def _candidate(self, rank, mesh_idx, text, image, view) -> Candidate:
+    def _candidate(self, rank, mesh_idx, text, image, view, inliers=-1, fused=None) -> Candidate:
         j = int(mesh_idx)
         ok = image is not None and np.isfinite(image)
+        verified = ok and inliers is not None and inliers >= 0
         return Candidate(
             rank=rank,
             mesh_id=self._mesh_id[j],
@@ -245,6 +289,8 @@ class Retriever:
             image_score=round(float(image), 6) if ok else None,
             best_view=int(view) if ok and view >= 0 else None,
             library_root=self._root[j],
+            inliers=int(inliers) if verified else None,
+            score=round(float(fused), 6) if verified and fused is not None else None,
         )
 
     def query(
@@ -259,6 +305,7 @@ class Retriever:
         fallback_k: int = 10,
         top: int = 5,
         prompt_weight: float | None = None,
+        verify: bool | None = None,
     ) -> QueryResult:
         """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
         if mode not in MODES:
@@ -271,7 +318,7 @@ class Retriever:
         emb = self.embed(roi, prompt)
         t2 = time.perf_counter()
         load_emb = sum(self.load_seconds.values()) - loaded - load_roi
-        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight)
+        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight, verify)
         t3 = time.perf_counter()
         result.timings = {
             "model_load_ms": (load_roi + load_emb) * 1000,

@@ -36,6 +36,7 @@ class Onboarding:
     profile: str
     models: dict[str, str | None]  # role -> "backend:model_id"
     fingerprints: dict[str, str]  # stage -> fingerprint
+    features: dict | None = None  # the local-feature config (pipeline.localfeat.FeatureConfig fields)
 
 
 def latest_onboarding(store: Store) -> Onboarding:
@@ -50,7 +51,11 @@ def latest_onboarding(store: Store) -> Onboarding:
     row = max(rows, key=lambda r: r["run_id"])
     cfg = json.loads(row["config_json"])
     return Onboarding(
-        row["run_id"], cfg.get("profile") or row["profile"] or "?", cfg["models"], cfg["fingerprints"]
+        row["run_id"],
+        cfg.get("profile") or row["profile"] or "?",
+        cfg["models"],
+        cfg["fingerprints"],
+        cfg.get("features"),
     )
 
 

@@ -17,6 +17,8 @@ class QueryEmbedding:
     image_space: np.ndarray  # float32, view-encoder space (DINOv2 / descriptor of the ROI)
     prompt_vec: np.ndarray | None = None  # float32, the prompt in caption-embedding space (when used)
     roi_caption: str | None = None  # the ROI's own caption (caption-space profiles)
+    local: object | None = None  # the ROI's local features (pipeline.localfeat.Features) when verifying
+    inliers: dict = field(default_factory=dict)  # mesh_idx -> (inliers, best view): verification cache
 
     def describe(self) -> dict:
         return {
@@ -24,6 +26,7 @@ class QueryEmbedding:
             "image_dim": int(self.image_space.shape[-1]),
             "prompt_used": self.prompt_vec is not None,
             "roi_caption": self.roi_caption,
+            "roi_keypoints": None if self.local is None else len(self.local),
         }
 
 
@@ -39,6 +42,8 @@ class Candidate:
     image_score: float | None  # stage-2 score (max over the model's views)
     best_view: int | None  # view_index of the best-matching view
     library_root: str | None = None
+    inliers: int | None = None  # RANSAC inliers of the best-verified view (None: not verified)
+    score: float | None = None  # fused score when verified (None: not verified; image_score applies)
 
     def to_dict(self) -> dict:
         return asdict(self)

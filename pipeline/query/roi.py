@@ -103,6 +103,76 @@ def border_segment(image: Image.Image, box: IntBox, min_share: float = 0.02, max
     return full
 
 
+def grabcut_segment(
+    image: Image.Image,
+    box: IntBox,
+    iterations: int = 4,
+    context: float = 0.3,
+    work_side: int = 200,
+    min_share: float = 0.05,
+    max_share: float = 0.98,
+):
+    """Segmenter-free object mask inside ``box``: OpenCV GrabCut seeded by the box (weight-free).
+
+    Pixels outside the box are background, pixels inside it probably foreground; colour models of both
+    are fitted iteratively and a graph cut separates them. It runs on the box plus ``context`` of its size
+    around it, downscaled so the longer side of that window is at most ``work_side`` pixels (about 20-60 ms
+    per box), then keeps the largest piece with its holes filled. Returns ``None`` when the result is
+    implausible (too small or the whole box), so the caller can fall back.
+    """
+    import cv2
+    from scipy import ndimage
+
+    W, H = image.size
+    x0, y0, x1, y1 = box
+    bw, bh = x1 - x0, y1 - y0
+    if min(bw, bh) < 8:
+        return None
+    cx0, cy0 = max(0, int(x0 - context * bw)), max(0, int(y0 - context * bh))
+    cx1, cy1 = min(W, int(np.ceil(x1 + context * bw))), min(H, int(np.ceil(y1 + context * bh)))
+    scale = min(1.0, work_side / max(cx1 - cx0, cy1 - cy0))
+    size = (max(1, round((cx1 - cx0) * scale)), max(1, round((cy1 - cy0) * scale)))
+    win = np.asarray(image.resize(size, Image.BILINEAR, box=(cx0, cy0, cx1, cy1)), dtype=np.uint8)
+    gc = np.full(win.shape[:2], cv2.GC_BGD, np.uint8)
+    bx0, by0 = int((x0 - cx0) * scale), int((y0 - cy0) * scale)
+    bx1, by1 = int(np.ceil((x1 - cx0) * scale)), int(np.ceil((y1 - cy0) * scale))
+    gc[by0:by1, bx0:bx1] = cv2.GC_PR_FGD
+    if (gc == cv2.GC_BGD).sum() < 16:  # the box is the whole photo: its 2-px rim must seed the background
+        gc[:2], gc[-2:], gc[:, :2], gc[:, -2:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
+    try:
+        cv2.setRNGSeed(0)  # GrabCut's GMM initialisation is random: keep queries deterministic
+        bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.grabCut(
+            np.ascontiguousarray(win[..., ::-1]), gc, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK
+        )
+    except cv2.error:
+        return None
+    fg = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    fg = ndimage.binary_opening(fg, iterations=1)
+    labels, n = ndimage.label(fg)
+    if n == 0:
+        return None
+    sizes = ndimage.sum(fg, labels, index=np.arange(1, n + 1))
+    fg = ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
+    big = (
+        np.asarray(Image.fromarray(fg.astype(np.uint8) * 255).resize((cx1 - cx0, cy1 - cy0), Image.BILINEAR))
+        >= 128
+    )
+    full = np.zeros((H, W), dtype=bool)
+    full[cy0:cy1, cx0:cx1] = big
+    inside = np.zeros_like(full)
+    inside[y0:y1, x0:x1] = True
+    full &= inside
+    share = float(full[y0:y1, x0:x1].mean())
+    if not min_share <= share <= max_share:
+        return None
+    return full
+
+
+#: the offline (segmenter-free) ways of splitting the object from its box, best first
+BOX_SEGMENTERS = {"grabcut": grabcut_segment, "border": border_segment}
+
+
 def cut_out(image: Image.Image, mask: np.ndarray, background=GRAY) -> tuple[Image.Image, np.ndarray, IntBox]:
     """The object (``mask`` pixels) pasted on ``background``, cropped to the mask's box."""
     box = mask_box(mask)
@@ -138,6 +208,7 @@ def make_roi(
     background=GRAY,
     min_side: int = 4,
     profile: str = "",
+    box_segmenter: str = "grabcut",
 ) -> Roi:
     """Build the ROI. ``model(role)`` returns the profile's detector/segmenter (loaded on first use) or None."""
     if roi_mode not in ROI_MODES:
@@ -178,10 +249,16 @@ def make_roi(
         if mask is None:
             segmenter = model("segmenter")
             if segmenter is None:
-                mask = border_segment(photo.image, work_box)
+                if box_segmenter not in BOX_SEGMENTERS:
+                    raise QueryError(
+                        f"unknown box segmenter {box_segmenter!r}; choose from {', '.join(BOX_SEGMENTERS)}"
+                    )
+                mask = BOX_SEGMENTERS[box_segmenter](photo.image, work_box)
                 if mask is None:
                     mask = box_mask((H, W), work_box)
-                    notes.append("no segmenter in this profile and no clear background in the box: ROI = box")
+                    notes.append("no segmenter in this profile and no clear object in the box: ROI = box")
+                elif box_segmenter == "grabcut":
+                    notes.append("no segmenter in this profile: object split from the box by GrabCut")
                 else:
                     notes.append("no segmenter in this profile: object split from the box's border colour")
             else:

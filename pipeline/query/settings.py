@@ -31,6 +31,10 @@ class QuerySettings:
     min_roi_side: int = 4  # ROIs (box or mask extent) smaller than this are rejected
     max_prompt_chars: int = 300
     background: tuple[int, int, int] = GRAY
+    box_segmenter: str = "grabcut"  # box -> mask without a segmenter model: "grabcut" | "border"
+    verify: bool = False  # local-feature verification of the top candidates (pipeline.query.verify)
+    verify_top: int = 20  # candidates verified (by global score)
+    verify_weight: float = 0.3  # weight of the inlier term in the fused score
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
@@ -39,7 +43,7 @@ class QuerySettings:
 PROFILE_SETTINGS: dict[str, QuerySettings] = {
     "paper": QuerySettings(threshold=0.37),
     # measured on the 78 YCB meshes (novel-view queries, prompts from the names): docs/query.md
-    "offline": QuerySettings(threshold=0.5, prompt_weight=0.5),
+    "offline": QuerySettings(threshold=0.5, prompt_weight=0.5, verify=True),
 }
 
 
