@@ -99,4 +99,5 @@ def test_config_validation():
         FeatureConfig(max_keypoints=2)
     a, b = FeatureConfig().fingerprint("r1"), FeatureConfig(max_keypoints=128).fingerprint("r1")
     assert a != b and a != FeatureConfig().fingerprint("r2")
-    assert VerifyConfig(weight=0.3).bonus([0, 6, 40, 100]).tolist() == pytest.approx([0, 0, 0.3, 0.3])
+    vc = VerifyConfig(weight=0.3, inlier_floor=6, inlier_cap=40)
+    assert vc.bonus([0, 6, 40, 100]).tolist() == pytest.approx([0, 0, 0.3, 0.3])

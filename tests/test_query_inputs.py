@@ -67,7 +67,7 @@ def test_huge_photo_is_downscaled_and_boxes_follow(tmp_path):
     big = scene(4000, 3000, box=(1000, 1000, 3000, 2000))
     photo = load_photo(big, max_side=1000)
     assert photo.image.size == (1000, 750) and photo.scale == pytest.approx(0.25)
-    roi = make_roi(photo, "the red box", box=(900, 900, 3100, 2100), model=no_models)
+    roi = make_roi(photo, "the red box", box=(900, 900, 3100, 2100), model=no_models, box_segmenter="border")
     assert roi.mask.shape == (3000, 4000)  # the mask is in the photo's own pixels
     x0, y0, x1, y1 = roi.box
     assert abs(x0 - 1000) <= 8 and abs(x1 - 3000) <= 8 and abs(y0 - 1000) <= 8 and abs(y1 - 2000) <= 8
@@ -205,9 +205,39 @@ def test_bbox_mode_is_the_raw_crop():
 
 def test_box_without_segmenter_splits_object_from_border_colour():
     photo = load_photo(scene())
-    roi = make_roi(photo, "the red box", box=(20, 10, 90, 80), model=no_models)
+    roi = make_roi(photo, "the red box", box=(20, 10, 90, 80), model=no_models, box_segmenter="border")
     assert roi.box == (30.0, 20.0, 80.0, 70.0)
     assert any("border colour" in n for n in roi.notes)
+
+
+def cluttered_scene(seed=0):
+    """A red ellipse on a busy checkerboard-and-noise background (no uniform border to key on)."""
+    rng = np.random.default_rng(seed)
+    ys, xs = np.mgrid[0:120, 0:160]
+    board = (((xs // 16) + (ys // 16)) % 2).astype(np.float32)
+    arr = np.stack([90 + 120 * board, 70 + 100 * board, 40 + 80 * board], -1) + rng.normal(
+        0, 12, (120, 160, 3)
+    )
+    obj = ((xs - 80) / 30.0) ** 2 + ((ys - 60) / 22.0) ** 2 <= 1
+    arr[obj] = (220, 40, 40) + rng.normal(0, 8, (int(obj.sum()), 3))
+    return Image.fromarray(np.clip(arr, 0, 255).astype(np.uint8)), obj
+
+
+def test_box_without_segmenter_uses_grabcut_on_clutter():
+    img, obj = cluttered_scene()
+    photo = load_photo(img)
+    box = (40, 30, 121, 91)
+    roi = make_roi(photo, "the red thing", box=box, model=no_models)
+    assert any("GrabCut" in n for n in roi.notes)
+    iou = (roi.mask & obj).sum() / (roi.mask | obj).sum()
+    assert iou > 0.85
+    border = border_segment(img, box)
+    border_iou = 0.0 if border is None else (border & obj).sum() / (border | obj).sum()
+    assert iou > border_iou
+    again = make_roi(photo, "the red thing", box=box, model=no_models)
+    assert np.array_equal(again.mask, roi.mask)  # deterministic
+    with pytest.raises(QueryError, match="unknown box segmenter"):
+        make_roi(photo, "x", box=box, model=no_models, box_segmenter="magic")
 
 
 def test_border_segment_gives_up_on_busy_boxes():

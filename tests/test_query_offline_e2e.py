@@ -70,6 +70,29 @@ def test_novel_view_with_mask_returns_the_mesh_first(ycb_store, queries, offline
     assert ranks == {name: 1 for name in YCB_NAMES}
 
 
+def test_local_feature_verification(ycb_store, queries, offline_models):
+    store, _ = ycb_store
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        assert r.settings.verify and r.verifier.available
+        photo, mask = queries["004_sugar_box"]
+        roi = r.make_roi(str(photo), "the sugar box", mask=str(mask))
+        emb = r.embed(roi, "the sugar box")
+        assert emb.local is not None and len(emb.local) > 50
+        on = r.rank(emb, "image-only", top=len(YCB_NAMES))
+        best = on.candidates[0]
+        assert best.name == "004_sugar_box" and best.inliers >= 15
+        assert best.score == pytest.approx(best.image_score + r.verifier.cfg.bonus(best.inliers), abs=1e-5)
+        assert "verify_ms" in on.timings and emb.inliers  # cached on the embedding
+        assert max(c.inliers for c in on.candidates[1:]) < best.inliers
+        off = r.rank(emb, "image-only", top=len(YCB_NAMES), verify=False)
+        assert all(c.inliers is None and c.score is None for c in off.candidates)
+    with Retriever.open(
+        store, profile="offline", models=offline_models, settings_changes={"verify": False}
+    ) as r:
+        emb = r.embed(r.make_roi(str(photo), "the sugar box", mask=str(mask)), "the sugar box")
+        assert emb.local is None
+
+
 def test_cli_end_to_end_with_explain_and_export(
     ycb_store, queries, offline_models, monkeypatch, capsys, tmp_path
 ):
@@ -108,7 +131,7 @@ def test_cli_end_to_end_with_explain_and_export(
     assert main(box_argv) == 0
     out = capsys.readouterr().out
     assert (
-        "border colour" in out
+        "GrabCut" in out
         and out.splitlines()[
             out.splitlines().index(next(x for x in out.splitlines() if x.lstrip().startswith("rank"))) + 1
         ].split()[1]

@@ -56,8 +56,8 @@ class VerifyConfig:
     min_spread: float = 0.04  # inliers must spread at least this fraction of the work side (per axis std)
     roi_keypoints: int = 384  # keypoints detected on the ROI
     view_keypoints: int = 192  # strongest stored keypoints used per view (at most the stored count)
-    inlier_floor: int = 6  # inliers at or below this add nothing (chance agreement)
-    inlier_cap: int = 40  # inliers at or above this add the full weight
+    inlier_floor: int = 4  # inliers at or below this add nothing (chance agreement)
+    inlier_cap: int = 20  # inliers at or above this add the full weight
     weight: float = 0.3  # fused = global score + weight * clip((inliers - floor) / (cap - floor), 0, 1)
 
     def bonus(self, inliers):

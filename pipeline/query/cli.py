@@ -75,6 +75,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="W",
         help="weight of the prompt in the stage-1 query vector (offline default 0.5, paper 0)",
     )
+    how.add_argument(
+        "--verify",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="re-rank the top candidates by local-feature matches (ratio test + RANSAC inliers) fused with "
+        "the image score (default: on for offline stores onboarded with local features)",
+    )
+    how.add_argument(
+        "--verify-top", type=int, metavar="N", help="candidates verified by local features (default 20)"
+    )
     how.add_argument("--top", type=int, default=5, metavar="N", help="how many models to list (default 5)")
     how.add_argument(
         "--device", default=None, help="torch device for models and stage 2 (default: cuda if available)"
@@ -163,7 +173,13 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.query.errors import QueryError
 
     _quiet_model_loading()
-    settings_changes = {"prompt_weight": args.prompt_weight}
+    if args.verify_top is not None and args.verify_top < 0:
+        raise QueryError("--verify-top must be >= 0")
+    settings_changes = {
+        "prompt_weight": args.prompt_weight,
+        "verify": args.verify,
+        "verify_top": args.verify_top,
+    }
     retriever = Retriever.open(
         args.store,
         profile=args.profile,

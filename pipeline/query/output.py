@@ -38,11 +38,15 @@ def format_result(r: QueryResult) -> str:
         for note in roi.get("notes", []):
             lines.append(f"note: {note}")
     lines.append(_stage1_line(r))
+    verified = any(getattr(c, "inliers", None) is not None for c in r.candidates)
     rows = [("rank", "model", "text", "image", "view", "source")]
     for c in r.candidates:
         path = os.path.join(c.library_root, c.source_path) if c.library_root else c.source_path
         view = "-" if c.best_view is None else str(c.best_view)
-        rows.append((str(c.rank), c.name, _score(c.text_score), _score(c.image_score), view, path))
+        image = _score(c.image_score)
+        if verified:  # "image (fused, inliers)"
+            image += "" if c.inliers is None else f" ({_score(c.score)}, {c.inliers} inl)"
+        rows.append((str(c.rank), c.name, _score(c.text_score), image, view, path))
     if len(rows) == 1:
         lines.append("no models matched")
     else:
