@@ -45,7 +45,6 @@ def read_lock(name: str) -> dict[str, str]:
 def check_pyproject() -> list[str]:
     """Problems: a pyproject requirement that its set's lock does not meet, or a CUDA package in a lock."""
     import tomllib
-
     from packaging.requirements import Requirement
     from packaging.version import Version
 
@@ -62,7 +61,9 @@ def check_pyproject() -> list[str]:
                 continue
             version = pins.get(norm(req.name))
             if version is None:
-                problems.append(f"requirements/{s}.txt lacks {req.name} (pyproject: {text}); run scripts/lock.sh")
+                problems.append(
+                    f"requirements/{s}.txt lacks {req.name} (pyproject: {text}); run scripts/lock.sh"
+                )
             elif not req.specifier.contains(Version(version), prereleases=True):
                 problems.append(f"requirements/{s}.txt pins {req.name}=={version}, pyproject wants {text}")
         problems += [f"requirements/{s}.txt pins a CUDA package: {n}" for n in pins if CUDA.match(n)]
@@ -89,7 +90,9 @@ def check_env(sets: list[str]) -> list[str]:
             problems.append(f"drift: {name} {got} installed, lock has {version}")  # 2.13.0+cpu meets ==2.13.0
     for name, version in sorted(have.items()):
         if name not in want and name not in NOT_LOCKED:
-            hint = " (a CUDA build of torch? set TORCH_INDEX_URL, docs/install.md)" if CUDA.match(name) else ""
+            hint = (
+                " (a CUDA build of torch? set TORCH_INDEX_URL, docs/install.md)" if CUDA.match(name) else ""
+            )
             problems.append(f"not in the lock: {name}=={version}{hint}")
     return problems
 
@@ -98,7 +101,9 @@ def check_wheel(path: str) -> list[str]:
     """Problems: a file of ``sql/``, a module of ``pipeline/``, ``py.typed`` or the ``oscar`` script
     missing from the wheel."""
     names = set(zipfile.ZipFile(path).namelist())
-    expected = [f"pipeline/_sql/{p.relative_to(ROOT / 'sql').as_posix()}" for p in (ROOT / "sql").rglob("*.sql")]
+    expected = [
+        f"pipeline/_sql/{p.relative_to(ROOT / 'sql').as_posix()}" for p in (ROOT / "sql").rglob("*.sql")
+    ]
     expected += [p.relative_to(ROOT).as_posix() for p in (ROOT / "pipeline").rglob("*.py")]
     expected.append("pipeline/py.typed")
     problems = [f"{path}: missing {e}" for e in sorted(expected) if e not in names]
