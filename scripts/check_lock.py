@@ -2,6 +2,7 @@
 
   python scripts/check_lock.py pyproject            # every pyproject requirement is met by its set's lock
   python scripts/check_lock.py env dev ray          # this interpreter has exactly the pins of those locks
+  python scripts/check_lock.py sync dev ray         # uninstall what those locks do not pin, then `env`
   python scripts/check_lock.py wheel dist/X.whl     # the wheel holds every sql/**/*.sql, py.typed, modules
 
 Exits 1 with one line per problem. ``env`` must run with the venv's interpreter (it reads that
@@ -97,6 +98,22 @@ def check_env(sets: list[str]) -> list[str]:
     return problems
 
 
+def sync_env(sets: list[str]) -> None:
+    """Uninstall the distributions that ``sets``' locks do not pin (a refreshed lock dropped them)."""
+    import subprocess
+    from importlib.metadata import distributions
+
+    want: dict[str, str] = {}
+    for s in sets:
+        want |= read_lock(s)
+    extra = sorted(
+        {norm(d.metadata["Name"]) for d in distributions() if d.metadata["Name"]} - set(want) - NOT_LOCKED
+    )
+    if extra:
+        print(f"[check] removing what the lock does not pin: {' '.join(extra)}", file=sys.stderr)
+        subprocess.run([sys.executable, "-m", "pip", "uninstall", "-q", "-y", *extra], check=True)
+
+
 def check_wheel(path: str) -> list[str]:
     """Problems: a file of ``sql/``, a module of ``pipeline/``, ``py.typed`` or the ``oscar`` script
     missing from the wheel."""
@@ -117,17 +134,19 @@ def check_wheel(path: str) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    if not argv or argv[0] not in ("pyproject", "env", "wheel"):
+    if not argv or argv[0] not in ("pyproject", "env", "sync", "wheel"):
         print(__doc__, file=sys.stderr)
         return 2
     cmd, args = argv[0], argv[1:]
     if cmd == "pyproject":
         problems = check_pyproject()
-    elif cmd == "env":
+    elif cmd in ("env", "sync"):
         bad = [s for s in args if s not in SETS]
         if bad or not args:
             print(f"error: sets must be among {', '.join(SETS)}", file=sys.stderr)
             return 2
+        if cmd == "sync":
+            sync_env(args)
         problems = check_env(args)
     else:
         problems = [p for w in args for p in check_wheel(w)] if args else ["no wheel given"]
