@@ -60,11 +60,13 @@ fi
 all=("${sets[@]}")
 for s in ${have_sets//,/ }; do [[ " ${all[*]} " == *" $s "* ]] || all+=("$s"); done
 reqs=(); for s in "${all[@]}"; do reqs+=(-r "requirements/$s.txt"); done
+# pip warns once per package about extra indexes that lack it (e.g. local mirrors): noise, not a problem
+quiet() { "$@" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2); }
 rm -f "$stamp"
 echo "[install] requirements/{$(IFS=,; echo "${all[*]}")}.txt into $VENV"
-"$PY" -m pip install -q "${reqs[@]}" ${TORCH_INDEX_URL:+--extra-index-url "$TORCH_INDEX_URL"}
+quiet "$PY" -m pip install -q "${reqs[@]}" ${TORCH_INDEX_URL:+--extra-index-url "$TORCH_INDEX_URL"}
 echo "[install] oscar-pipeline (editable, --no-deps)"
-"$PY" -m pip install -q --no-deps --no-build-isolation -e .
+quiet "$PY" -m pip install -q --no-deps --no-build-isolation -e .
 "$PY" scripts/check_lock.py sync "${all[@]}"  # remove what a refreshed lock dropped; fail on any drift
 printf '%s\n%s\n' "$key" "$(IFS=,; echo "${all[*]}")" > "$stamp"
 echo "[install] done: $PY"
