@@ -19,14 +19,6 @@ for s in "${sets[@]}"; do
   [ -f "requirements/$s.txt" ] || { echo "error: no lock set '$s' (requirements/$s.txt)" >&2; exit 2; }
 done
 
-if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa.so" || ! ldconfig -p | grep -q "libGL.so.1"; then
-  echo "[install] Debian packages for headless EGL rendering"
-  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
-  $SUDO apt-get update -qq
-  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
-    libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgles2 >/dev/null
-fi
-
 if [ ! -x "$PY" ]; then
   [ -n "${PYTHON:-}" ] && { echo "error: PYTHON=$PYTHON is not an executable python" >&2; exit 2; }
   base="${BASE_PYTHON:-$(command -v python3.11 || command -v python3)}"
@@ -42,6 +34,14 @@ pyver="$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1
 if [ "$pyver" != "3.11" ]; then
   echo "error: the lock files are for CPython 3.11, $PY is $pyver (BASE_PYTHON=python3.11 or VENV=...)" >&2
   exit 2
+fi
+
+if ! ldconfig -p 2>/dev/null | grep -q "libEGL_mesa.so" || ! ldconfig -p | grep -q "libGL.so.1"; then
+  echo "[install] Debian packages for headless EGL rendering"
+  SUDO=""; [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null && SUDO="sudo"
+  $SUDO apt-get update -qq
+  $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+    libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgles2 >/dev/null
 fi
 
 # The stamp: one key over everything that decides what gets installed, and the sets installed under it.

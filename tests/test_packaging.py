@@ -102,3 +102,29 @@ def test_lock_files_meet_pyproject_and_hold_no_cuda_packages():
         pins = mod.read_lock(s)
         assert not [n for n in pins if mod.CUDA.match(n)]
         assert all(pins[n] == v for n, v in base.items() if n in pins)
+
+
+def _install(*args, **env):
+    return subprocess.run(
+        ["bash", str(REPO / "scripts" / "install.sh"), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, **env},
+        stdin=subprocess.DEVNULL,
+    )
+
+
+def test_install_never_touches_a_system_interpreter():
+    base = os.path.join(sys.base_prefix, "bin", "python3")
+    if not os.access(base, os.X_OK):
+        pytest.skip(f"no base interpreter at {base}")
+    r = _install("dev", PYTHON=base)
+    assert r.returncode == 2
+    assert "is not a virtual environment; OSCAR never installs into a system interpreter" in r.stderr
+
+
+def test_install_rejects_an_unknown_lock_set(tmp_path):
+    r = _install("dev,nope", VENV=str(tmp_path / "venv"))
+    assert r.returncode == 2 and "no lock set 'nope'" in r.stderr
+    assert not (tmp_path / "venv").exists()
