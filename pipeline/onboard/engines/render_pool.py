@@ -12,9 +12,9 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
-from pipeline.config import OnboardConfig
-from pipeline.stages.base import error_row
-from pipeline.stages.render import RENDER_OUT
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row
+from pipeline.onboard.stages.render import RENDER_OUT
 
 EGL_HINT = "rendering needs EGL/OpenGL: install libegl1 libegl-mesa0 libgl1 (docs/install.md)"
 
@@ -32,7 +32,7 @@ def _cause(exc: BaseException) -> str:
 
 def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
     try:
-        from pipeline.stages.render import RenderStage
+        from pipeline.onboard.stages.render import RenderStage
 
         stage = RenderStage(cfg, run_id)
         stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
