@@ -20,8 +20,8 @@ ROOT = Path(__file__).resolve().parent.parent
 LOCK_DIR = ROOT / "requirements"
 SETS = ("base", "dev", "ray", "paper")
 CUDA = re.compile(r"^(nvidia-|triton$|cuda-)")
-# installer tooling and the project itself are not dependencies of the project
-NOT_LOCKED = {"pip", "wheel", "oscar-pipeline"}
+# installer tooling and the project itself: never removed by `sync` (their pins, if any, are still checked)
+NOT_LOCKED = {"pip", "setuptools", "wheel", "oscar-pipeline"}
 
 
 def norm(name: str) -> str:
