@@ -343,9 +343,9 @@ def _onboarded_from(store_path: str) -> set[str]:
 def _bar(progress: bool):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from pipeline.progress import iterate  # tqdm on a terminal, plain lines in a log
 
-    return lambda it: tqdm(it, desc="queries", unit="query")
+    return lambda it: iterate(it, "queries", unit="query")
 
 
 if __name__ == "__main__":
