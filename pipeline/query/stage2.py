@@ -97,8 +97,8 @@ class ViewReranker:
         with torch.inference_mode():
             if mesh_idx is None:
                 pad, valid = self._pad, self._valid
-                per_view = self._emb @ q  # every view once, then gathered per mesh
-                s = per_view[pad.clamp(min=0)]
+                every_view = self._emb @ q  # every view once, then gathered per mesh
+                s = every_view[pad.clamp(min=0)]
             else:
                 idx = torch.from_numpy(np.asarray(mesh_idx, dtype=np.int64)).to(self.device)
                 pad, valid = self._pad[idx], self._valid[idx]
