@@ -329,6 +329,11 @@ class Retriever:
     def n_meshes(self) -> int:
         return len(self._mesh_id)
 
+    @property
+    def mesh_ids(self) -> list[str]:
+        """Active mesh ids in ``mesh_idx`` order (what a :class:`ViewRanking`'s ``mesh_idx`` indexes)."""
+        return self._mesh_id
+
     def mesh(self, mesh_id: str) -> dict:
         """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
         j = self._mesh_id.index(mesh_id)
