@@ -10,7 +10,7 @@ from __future__ import annotations
 import pyarrow as pa
 
 from pipeline import schemas
-from pipeline.stages.base import error_row, with_errors
+from pipeline.onboard.stages.base import error_row, with_errors
 
 FEATURES_OUT = with_errors(schemas.VIEW_FEATURES)
 
@@ -26,7 +26,7 @@ class FeatureStage:
 
     def __call__(self, views: pa.Table) -> pa.Table:
         from pipeline.localfeat import detect, to_row
-        from pipeline.render import decode_png
+        from pipeline.mesh.render import decode_png
 
         items = views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
         by_mesh: dict[str, list[dict]] = {}
