@@ -153,9 +153,9 @@ def make_plan(
             (todo(f"image_embeddings/{s}", fp, "embed_image") | need_render) & ok
         ) - failed.get(fp, set())
     if "features" in fps:
-        plan.features = ((todo("view_features", fps["features"], "features") | need_render) & ok) - failed.get(
-            fps["features"], set()
-        )
+        plan.features = (
+            (todo("view_features", fps["features"], "features") | need_render) & ok
+        ) - failed.get(fps["features"], set())
     busy = (
         set(plan.render)
         | plan.caption

@@ -353,9 +353,7 @@ class Retriever:
         emb = self.embed(roi, prompt)
         t2 = time.perf_counter()
         load_emb = sum(self.load_seconds.values()) - loaded - load_roi
-        result = self.rank(
-            emb, mode, threshold, fallback_k, top, prompt_weight, fallback_unit, verify=verify
-        )
+        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight, fallback_unit, verify=verify)
         t3 = time.perf_counter()
         result.timings = {
             "model_load_ms": (load_roi + load_emb) * 1000,
