@@ -33,6 +33,8 @@ def main() -> int:
     p.add_argument("--candidates", type=int, default=20)
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--limit", type=int, default=0, help="first N queries only")
+    p.add_argument("--roi-keypoints", type=int, help="VerifyConfig.roi_keypoints (default: 384)")
+    p.add_argument("--view-keypoints", type=int, help="VerifyConfig.view_keypoints (default: 192)")
     p.add_argument("--json", help="write the results here")
     args = p.parse_args()
 
@@ -48,6 +50,10 @@ def main() -> int:
     queries = load_queries(args.queries)[: args.limit or None]
     detect_ms, match_ms, total_ms, views, embed_ms, cpu_ms = [], [], [], [], [], []
     with Retriever.open(args.store, profile="offline", settings_changes={"verify": True}) as r:
+        import dataclasses
+
+        knobs = {"roi_keypoints": args.roi_keypoints, "view_keypoints": args.view_keypoints}
+        r.verifier.cfg = dataclasses.replace(r.verifier.cfg, **{k: v for k, v in knobs.items() if v})
         if not r.verifier.available:
             print(f"error: store {args.store} has no view_features (onboard with --local-features sift)")
             return 2

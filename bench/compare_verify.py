@@ -26,6 +26,8 @@ def main() -> int:
     p.add_argument("--queries", required=True)
     p.add_argument("--boxes-only", action="store_true", help="drop the masks: box ROIs (GrabCut)")
     p.add_argument("--every", type=int, default=1, help="keep every N-th query (default: all)")
+    p.add_argument("--roi-keypoints", type=int, help="VerifyConfig.roi_keypoints (default: 384)")
+    p.add_argument("--view-keypoints", type=int, help="VerifyConfig.view_keypoints (default: 192)")
     p.add_argument("--json", help="write per-query ranks and the summary here")
     args = p.parse_args()
 
@@ -49,6 +51,10 @@ def main() -> int:
     ranks: dict[str, list[int]] = {k: [] for k in settings}
     rows, t_verify = [], []
     with Retriever.open(args.store, profile="offline", settings_changes={"verify": True}) as r:
+        import dataclasses
+
+        knobs = {"roi_keypoints": args.roi_keypoints, "view_keypoints": args.view_keypoints}
+        r.verifier.cfg = dataclasses.replace(r.verifier.cfg, **{k: v for k, v in knobs.items() if v})
         for q in queries:
             expected = set().union(*(library.resolve(e) for e in q.expected))
             roi = r.make_roi(q.image, q.prompt, box=q.box, mask=q.mask)

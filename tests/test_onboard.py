@@ -78,7 +78,10 @@ def test_feature_config_change_recomputes_only_features(tmp_path, offline_models
     assert content(store, lambda d: d.split("/")[0] not in ("runs", "view_features")) == before
     s = Store.open(store)
     assert s.read("view_features").num_rows == 16
-    assert max(s.read_latest("view_features").column("n_keypoints").to_pylist()) <= 64
+    runs = s.read("runs").sort_by("run_id").column("config_json").to_pylist()
+    fp64 = json.loads(runs[-1])["fingerprints"]["features"]
+    new = s.read("view_features", filter=pc.field("fingerprint") == fp64)
+    assert new.num_rows == 8 and max(new.column("n_keypoints").to_pylist()) <= 64
     # detector "none": no features stage at all
     summary = onboard(lib, store, offline_models, features=FeatureConfig(detector="none"))
     assert summary.skipped == 1 and Store.open(store).read("view_features").num_rows == 16
