@@ -7,14 +7,13 @@ because the old parts stay valid until the commit that replaces them.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from pipeline.cli_common import fail
+from pipeline.cli_common import OneLineParser, fail
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
     p.add_argument("store", metavar="STORE")
     args = p.parse_args(argv)
     from pipeline.store import Store, StoreError

@@ -14,6 +14,8 @@ RENDER_VERSION = "pyrender-5"
 #: Bump when the offline attribute captioner's wording changes.
 STAGES = ("render", "caption", "embed_text", "embed_image")
 GRAY = (205, 205, 205)
+#: Textures with more pixels than this fail their mesh (decompression-bomb guard); ``--max-texture-pixels``.
+DEFAULT_MAX_TEXTURE_PIXELS = 8192 * 8192
 
 
 def fingerprint(obj: object) -> str:
@@ -37,6 +39,14 @@ class RenderConfig:
     max_texture: int = 1024  # textures are downscaled to this edge length before upload
     up: str = "auto"  # "auto" (z up; y up for glTF) | "z" | "y"
 
+    def __post_init__(self) -> None:
+        import math
+
+        if not 16 <= self.resolution <= 8192:
+            raise ValueError(f"resolution must be 16..8192 pixels, got {self.resolution}")
+        if not math.isfinite(self.upper_ring_offset_deg):
+            raise ValueError(f"upper ring offset must be a finite angle, got {self.upper_ring_offset_deg}")
+
     def fingerprint(self) -> str:
         return fingerprint({"v": RENDER_VERSION, **asdict(self)})
 
@@ -50,6 +60,7 @@ class OnboardConfig:
     prompt_style: str = DEFAULT_PROMPT_STYLE
     render: RenderConfig = field(default_factory=RenderConfig)
     max_faces: int = 2_000_000
+    max_texture_pixels: int = DEFAULT_MAX_TEXTURE_PIXELS  # not fingerprinted: a guard, not a look
     render_timeout_s: float = 120.0
     workers: int = 2
     batch_size: int = 16
@@ -64,6 +75,15 @@ class OnboardConfig:
             raise ValueError(
                 f"unknown --prompt-style {self.prompt_style!r}; choose from {', '.join(PROMPT_STYLES)}"
             )
+        import math
+
+        if not (math.isfinite(self.render_timeout_s) and self.render_timeout_s > 0):
+            raise ValueError(f"render timeout must be > 0 seconds, got {self.render_timeout_s}")
+        for name in ("max_faces", "max_texture_pixels", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
         bad = [s for s in self.force if s not in STAGES]
         if bad:
             raise ValueError(f"unknown --force stage {bad[0]!r}; stages: {', '.join(STAGES)}")

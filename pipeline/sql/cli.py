@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from pipeline.cli_common import OneLineParser, non_negative_int
 from pipeline.sql.output import FORMATS
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.sql",
         description="SQL over an OSCAR store: every table and the views of sql/views/ are registered. "
         "Without -c/-f/--audit it opens an interactive shell (statements from stdin when piped).",
@@ -42,7 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--format", default="table", choices=FORMATS, help="output format (default: %(default)s)")
     p.add_argument(
-        "--max-width", type=int, default=60, help="cut table/markdown cells at N characters (0: never)"
+        "--max-width",
+        type=non_negative_int,
+        default=60,
+        help="cut table/markdown cells at N characters (0: never)",
     )
     p.add_argument(
         "--set",
