@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from pipeline.cli_common import OneLineParser, non_negative_int
 from pipeline.sql.output import FORMATS
@@ -55,6 +56,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         help="set a DuckDB variable first, e.g. audit_min_caption_chars=25 (repeatable)",
     )
+    p.add_argument(
+        "--export-dir",
+        metavar="DIR",
+        help="the one folder COPY ... TO may write to (created; must be outside the store); "
+        "without it SQL cannot write files at all",
+    )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
     return p
@@ -93,10 +100,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.export_duckdb:
         from pipeline.sql.export import export_duckdb
 
+        root = _local_root(store)
+        if root is not None and root.resolve() in Path(args.export_duckdb).resolve().parents:
+            return fail(
+                f"--export-duckdb {args.export_duckdb} is inside the store {root}: write it elsewhere"
+            )
         try:
             out = export_duckdb(store, args.export_duckdb, overwrite=args.force)
-        except FileExistsError as exc:
-            return fail(str(exc))
+        except OSError as exc:
+            return fail(
+                str(exc) if isinstance(exc, FileExistsError) else f"cannot write {args.export_duckdb}: {exc}"
+            )
         print(f"wrote {out}: open it with `duckdb {out}` (tables <table>_all, views as in docs/analysts.md)")
         return 0
     if args.duckdb_cli:
@@ -105,9 +119,15 @@ def main(argv: list[str] | None = None) -> int:
     import duckdb
 
     from pipeline.db import connect
+    from pipeline.sql.confine import check_export_dir, confine
     from pipeline.sql.session import Printer, run_audits, run_sql, set_variables
 
+    try:
+        export_dir = check_export_dir(args.export_dir, _local_root(store)) if args.export_dir else None
+    except (ValueError, OSError) as exc:
+        return fail(str(exc))
     con = connect(store)
+    confine(con, export_dir)  # after every relation and view is registered
     printer = Printer(args.format, args.max_width)
     try:
         set_variables(con, _variables(args.set))
@@ -128,6 +148,12 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.sql.shell import Shell
 
     return Shell(con, printer).run()
+
+
+def _local_root(store) -> Path | None:
+    from pipeline.store import Store
+
+    return store.root if isinstance(store, Store) else None
 
 
 def _exec_duckdb_cli(store) -> int:
