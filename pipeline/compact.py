@@ -24,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
             kept = store.compact()
     except StoreError as exc:
         return fail(str(exc))
+    except OSError as exc:
+        return fail(f"I/O error: {exc.strerror or exc} ({exc.filename or args.store})")
     for dataset, rows in sorted(kept.items()):
         print(f"{dataset}: {before.get(dataset, 0)} parts -> 1, {rows} rows")
     return 0

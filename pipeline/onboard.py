@@ -170,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
     except (StoreError, ModelLoadError, RenderSetupError, RayEngineError) as exc:
         return fail(str(exc))
+    except OSError as exc:  # a library or store file system failing outside a commit
+        return fail(f"I/O error: {exc.strerror or exc} ({exc.filename or args.store})")
     except KeyboardInterrupt:
         return fail("interrupted: committed batches are kept; run the same command again to resume", 130)
     if args.json:
