@@ -88,6 +88,9 @@ def walk_library(
                 continue
             rel = Path(e.path).relative_to(root).as_posix()
             fmt = MESH_EXTENSIONS.get(os.path.splitext(e.name)[1].lower())
+            if fmt is not None and not _utf8(rel):
+                _problem(problems, rel, e.path, "file name is not valid UTF-8: rename the file")
+                continue
             try:
                 st = os.stat(e.path)  # follows symlinks
             except OSError as exc:
@@ -108,7 +111,16 @@ def walk_library(
     return found
 
 
+def _utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def _problem(problems: list, rel: str, abs_path: str, reason: str) -> None:
+    rel = rel.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")  # storable text
     fmt = MESH_EXTENSIONS.get(os.path.splitext(rel)[1].lower(), "unknown")
     problems.append((FoundFile(rel, abs_path, fmt, 0, 0), reason))
 
@@ -272,8 +284,10 @@ def deps_unchanged(abs_path: str, recorded: list[dict] | None) -> bool:
 HASH_TIMEOUT_S = 600.0
 
 
-def identify(f: FoundFile, cached: dict | None, hash_timeout_s: float = HASH_TIMEOUT_S) -> FoundFile:
-    """Fill ``f.mesh_id`` and ``f.deps``: from the cache when nothing changed, else by hashing."""
+def identify(f: FoundFile, cached: dict | None, hash_timeout_s: float | None = None) -> FoundFile:
+    """Fill ``f.mesh_id`` and ``f.deps``: from the cache when nothing changed, else by hashing (at most
+    ``hash_timeout_s``, default :data:`HASH_TIMEOUT_S`, per file)."""
+    hash_timeout_s = HASH_TIMEOUT_S if hash_timeout_s is None else hash_timeout_s
     if (
         cached is not None
         and cached["file_size"] == f.size

@@ -10,8 +10,12 @@ import numpy as np
 RESOLUTION = 64  # tiny renders: the corpus checks outcomes, not pixels
 
 
-def write_textured_obj(folder: Path, texture: bytes | None = None, name: str = "model") -> Path:
-    """A textured cube (OBJ + MTL + 16x16 PNG) in ``folder``; returns the .obj path."""
+def write_textured_obj(
+    folder: Path, texture: bytes | None = None, name: str = "model", colour=(200, 30, 30)
+) -> Path:
+    """A textured box (OBJ + MTL + 16x16 PNG, half ``colour``) in ``folder``; returns the .obj path.
+
+    Boxes of another ``colour`` have other content, hence another ``mesh_id`` (new work for a run)."""
     import trimesh
     from PIL import Image
 
@@ -26,7 +30,7 @@ def write_textured_obj(folder: Path, texture: bytes | None = None, name: str = "
     (folder / "model.mtl").write_text("newmtl m\nKd 1 1 1\nmap_Kd texture.png\n")
     if texture is None:
         img = np.zeros((16, 16, 3), np.uint8)
-        img[:, :8] = (200, 30, 30)
+        img[:, :8] = colour
         img[:, 8:] = (30, 30, 200)
         Image.fromarray(img).save(folder / "texture.png")
     else:
