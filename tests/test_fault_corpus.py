@@ -32,7 +32,7 @@ def fault_base(tmp_path_factory, offline_models):
         yield lib, store
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+@pytest.mark.parametrize("case", [pytest.param(c, marks=c.marks, id=c.name) for c in CASES])
 def test_fault(case, fault_base, tmp_path, monkeypatch):
     lib0, store0 = fault_base
     env = Env(tmp_path, copy_tree(lib0, tmp_path / "lib"), copy_tree(store0, tmp_path / "store"), monkeypatch)
