@@ -800,3 +800,42 @@ def _marker(env: Env) -> Path:
 )
 def _(env: Env):
     return env.onboard()  # must not delete the parts the lost entry named as "orphans"
+
+
+# ================================================================== readers on a read-only store
+def _read_only_store(env: Env) -> None:
+    """Every write below the store fails with EROFS (a read-only mount), reads work."""
+    real_open, real_replace, real_mkdir = os.open, os.replace, os.mkdir
+    store = str(env.store)
+
+    def ro_open(path, flags, *a, **k):
+        if str(path).startswith(store) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise OSError(errno.EROFS, "Read-only file system", str(path))
+        return real_open(path, flags, *a, **k)
+
+    def ro_two(real):
+        def fake(src, *a, **k):
+            if str(src).startswith(store):
+                raise OSError(errno.EROFS, "Read-only file system", str(src))
+            return real(src, *a, **k)
+
+        return fake
+
+    env.monkeypatch.setattr(os, "open", ro_open)
+    env.monkeypatch.setattr(os, "replace", ro_two(real_replace))
+    env.monkeypatch.setattr(os, "mkdir", ro_two(real_mkdir))
+
+
+@case("sql_read_only_store", "sql", "handled")
+def _(env: Env):
+    _read_only_store(env)
+    r = env.sql("--audit", "all")
+    assert "audit" in r.out, r.out[:300]
+    return r
+
+
+@case("query_read_only_store", "query", "handled")
+def _(env: Env):
+    photo = _photo(env)
+    _read_only_store(env)
+    return env.cli("query", ["--store", env.store, "--image", photo, *_QUERY])
