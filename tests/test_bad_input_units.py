@@ -113,7 +113,7 @@ def test_export_dir_may_not_overlap_the_store(tmp_path):
 
 
 def test_walk_library_special_files(tmp_path):
-    from pipeline.discover import open_regular, walk_library
+    from pipeline.mesh.discover import open_regular, walk_library
 
     (tmp_path / "a").mkdir()
     (tmp_path / "a" / "m.stl").write_bytes(b"solid x\nendsolid x\n")

@@ -15,8 +15,9 @@ from faults.library import RESOLUTION, copy_tree, write_library
 @pytest.fixture(scope="session")
 def fault_base(tmp_path_factory, offline_models):
     """One small library and its store, built once; every case works on a copy."""
-    import pipeline.executor as executor
-    from pipeline.config import OnboardConfig, RenderConfig
+    import pipeline.onboard.engines.local as executor
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.onboard.config import OnboardConfig
 
     root = tmp_path_factory.mktemp("fault_base")
     lib = write_library(root / "lib")

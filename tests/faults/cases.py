@@ -390,7 +390,7 @@ def _during_render(action):
     """Run ``action(abs_path)`` just before the mesh at ``abs_path`` is rendered (a file changed mid-run)."""
 
     def prepare_patch(env: Env) -> None:
-        from pipeline.stages.render import RenderStage
+        from pipeline.onboard.stages.render import RenderStage
 
         real = RenderStage.render_one
 
@@ -421,7 +421,7 @@ def _(env: Env):
 def _(env: Env):
     import time
 
-    import pipeline.discover as discover
+    import pipeline.mesh.discover as discover
 
     _new_mesh(env)
     real = discover.content_hash

@@ -77,7 +77,7 @@ class Env:
 
 def _entry(tool: str) -> Callable[[list[str]], int]:
     if tool == "onboard":
-        from pipeline.onboard import main
+        from pipeline.onboard.cli import main
     elif tool == "query":
         from pipeline.query.cli import main
     elif tool == "sql":

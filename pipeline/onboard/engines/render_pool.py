@@ -12,9 +12,9 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
-from pipeline.config import OnboardConfig
-from pipeline.stages.base import error_row
-from pipeline.stages.render import RENDER_OUT
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row
+from pipeline.onboard.stages.render import RENDER_OUT
 
 
 class RenderSetupError(RuntimeError):
@@ -22,7 +22,7 @@ class RenderSetupError(RuntimeError):
 
 
 def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
-    from pipeline.stages.render import RenderStage
+    from pipeline.onboard.stages.render import RenderStage
 
     stage = RenderStage(cfg, run_id)
     stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only

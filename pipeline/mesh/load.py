@@ -42,7 +42,7 @@ def load_mesh(
     """
     import trimesh
 
-    from pipeline.textures import check_textures, declared_textures, textures_loaded
+    from pipeline.mesh.textures import check_textures, declared_textures, textures_loaded
 
     _require_file(path)
     textures = declared_textures(path, fmt)

@@ -2,7 +2,7 @@
 
 trimesh swallows texture errors (a corrupt PNG, or one PIL refuses as a decompression bomb) and returns
 an untextured mesh, which renders white and is captioned "a white object". These checks turn that into
-a one-line :class:`~pipeline.meshio.MeshError` (an errors row) that names the file.
+a one-line :class:`~pipeline.mesh.load.MeshError` (an errors row) that names the file.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ EMBEDDED = "<embedded image>"
 
 def declared_textures(path: str, fmt: str) -> list[str]:
     """Colour textures ``path`` references: file paths relative to its folder, or ``EMBEDDED`` entries."""
-    from pipeline.discover import _obj_mtllibs, _ply_textures, open_regular
+    from pipeline.mesh.discover import _obj_mtllibs, _ply_textures, open_regular
 
     base = Path(path).parent
     out: list[str] = []
@@ -64,8 +64,8 @@ def check_textures(path: str, textures: list[str], max_pixels: int | None) -> No
     """Decode every texture file (JPEG at reduced scale); raise ``MeshError`` naming the first bad one."""
     from PIL import Image
 
-    from pipeline.discover import open_regular
-    from pipeline.meshio import MeshError
+    from pipeline.mesh.discover import open_regular
+    from pipeline.mesh.load import MeshError
 
     base = Path(path).parent
     for rel in textures:
