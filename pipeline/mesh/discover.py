@@ -86,19 +86,24 @@ def walk_library(
         for e in entries:
             if e.name.startswith("."):
                 continue
-            rel = Path(e.path).relative_to(root).as_posix()
+            is_link = e.is_symlink()  # d_type: no system call for plain files and folders
+            if not is_link and e.is_dir(follow_symlinks=False):
+                stack.append(Path(e.path))
+                continue
             fmt = MESH_EXTENSIONS.get(os.path.splitext(e.name)[1].lower())
+            if fmt is None and not is_link:
+                continue  # textures, materials, anything else: never stat'ed here
+            rel = Path(e.path).relative_to(root).as_posix()
             if fmt is not None and not _utf8(rel):
                 _problem(problems, rel, e.path, "file name is not valid UTF-8: rename the file")
                 continue
             try:
                 st = os.stat(e.path)  # follows symlinks
             except OSError as exc:
-                if fmt is not None or e.is_symlink():
-                    _problem(problems, rel, e.path, _stat_reason(e, exc))
+                _problem(problems, rel, e.path, _stat_reason(e, exc))
                 continue
             if stat.S_ISDIR(st.st_mode):
-                (linked if e.is_symlink() else stack).append(Path(e.path))
+                (linked if is_link else stack).append(Path(e.path))
                 continue
             if fmt is None:
                 continue
