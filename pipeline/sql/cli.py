@@ -126,7 +126,10 @@ def main(argv: list[str] | None = None) -> int:
         export_dir = check_export_dir(args.export_dir, _local_root(store)) if args.export_dir else None
     except (ValueError, OSError) as exc:
         return fail(str(exc))
-    con = connect(store)
+    try:
+        con = connect(store)
+    except (OSError, ValueError, RuntimeError, duckdb.Error) as exc:  # a damaged or vanished store file
+        return fail(f"cannot read the store {args.store}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     confine(con, export_dir)  # after every relation and view is registered
     printer = Printer(args.format, args.max_width)
     try:

@@ -756,7 +756,6 @@ store_case(
     lambda env: _data_file(env).unlink(),
     _count_captions,
     expect="part-",
-    marks=_ITEM5,
 )
 store_case(
     "store_part_truncated",
