@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     except StoreError as exc:
         return fail(str(exc))
     except OSError as exc:
-        return fail(f"I/O error: {exc.strerror or exc} ({exc.filename or args.store})")
+        return fail(f"I/O error on the store or library: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     for dataset, rows in sorted(kept.items()):
         print(f"{dataset}: {before.get(dataset, 0)} parts -> 1, {rows} rows")
     return 0

@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     except (StoreError, ModelLoadError, RenderSetupError, RayEngineError) as exc:
         return fail(str(exc))
     except OSError as exc:  # a library or store file system failing outside a commit
-        return fail(f"I/O error: {exc.strerror or exc} ({exc.filename or args.store})")
+        return fail(f"I/O error on the store or library: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     except KeyboardInterrupt:
         return fail("interrupted: committed batches are kept; run the same command again to resume", 130)
     if args.json:

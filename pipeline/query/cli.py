@@ -156,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
     except ValueError as exc:  # --model syntax, unknown roles
         return fail(str(exc))
+    except OSError as exc:  # a store file that vanished or cannot be read
+        return fail(f"cannot read the store {args.store}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     except KeyboardInterrupt:
         return fail("interrupted", 130)
 

@@ -838,3 +838,24 @@ def _(env: Env):
     photo = _photo(env)
     _read_only_store(env)
     return env.cli("query", ["--store", env.store, "--image", photo, *_QUERY])
+
+
+store_case(
+    "store_part_deleted",
+    "query",
+    lambda env: _data_file(env).unlink(),
+    lambda env: ["--store", env.store, "--image", _photo(env), *_QUERY],
+    expect="part-",
+)
+
+
+@case(
+    "onboard_store_part_deleted",
+    "onboard",
+    "error",
+    "part-",
+    prepare=lambda env: _data_file(env, "meshes").unlink(),
+    rows="skip",
+)
+def _(env: Env):
+    return env.onboard()
