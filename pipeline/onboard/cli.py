@@ -45,6 +45,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="oscar: 4 views at -15 and 4 at +15 deg elevation; cap3d: the reference scripts' 8 positions",
     )
     p.add_argument(
+        "--extra-bg-view",
+        action="store_true",
+        help="also render view 0 on black as an extra stage-2 (DINOv2) reference view, not captioned "
+        "(the reference scripts' _bg render)",
+    )
+    p.add_argument(
         "--resolution",
         type=int_range(16, 8192),
         default=512,
@@ -140,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
                 resolution=args.resolution,
                 upper_ring_offset_deg=args.upper_ring_offset,
                 up=args.up,
+                extra_bg_view=args.extra_bg_view,
             ),
             max_faces=args.max_faces,
             max_texture_pixels=args.max_texture_pixels,

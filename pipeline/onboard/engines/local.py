@@ -70,7 +70,8 @@ class _Timer:
 
 
 def _bars(progress: bool, plan: Plan):
-    from tqdm.auto import tqdm
+    """Per-stage progress: tqdm bars on a terminal, plain lines in a cron log (:mod:`pipeline.progress`)."""
+    from pipeline.progress import stage_bars
 
     totals = {
         "render": len(plan.render),
@@ -78,10 +79,7 @@ def _bars(progress: bool, plan: Plan):
         "embed_text": len(plan.embed_text),
         "embed_image": len(set().union(*plan.embed_image.values())) if plan.embed_image else 0,
     }
-    return {
-        k: tqdm(total=n, desc=f"{k:<11}", unit="mesh", disable=not progress or n == 0, leave=True, position=i)
-        for i, (k, n) in enumerate(totals.items())
-    }
+    return stage_bars(totals, unit="mesh", enabled=progress)
 
 
 def _prefetch(source: Iterator, maxsize: int) -> Iterator:
