@@ -25,16 +25,24 @@ def fault_base(tmp_path_factory, offline_models):
     cfg = OnboardConfig(workers=0, render=RenderConfig(resolution=RESOLUTION))
     summary = executor.run_onboarding(str(lib), str(store), cfg, progress=False, models=offline_models)
     assert summary.status == "ok" and summary.failed == 0
-    # the command-line runs of the corpus reuse the session's models (loading them per case is slow)
+    return lib, store
+
+
+@pytest.fixture
+def shared_models(offline_models):
+    """The corpus's command-line onboarding runs reuse the session's models (loading them per case is
+    slow); only while a corpus test runs, so other tests' CLI runs load their own."""
+    import pipeline.onboard.engines.local as executor
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(
             executor, "run_onboarding", functools.partial(executor.run_onboarding, models=offline_models)
         )
-        yield lib, store
+        yield
 
 
 @pytest.mark.parametrize("case", [pytest.param(c, marks=c.marks, id=c.name) for c in CASES])
-def test_fault(case, fault_base, tmp_path, monkeypatch):
+def test_fault(case, fault_base, shared_models, tmp_path, monkeypatch):
     lib0, store0 = fault_base
     env = Env(tmp_path, copy_tree(lib0, tmp_path / "lib"), copy_tree(store0, tmp_path / "store"), monkeypatch)
     if case.prepare:
