@@ -103,7 +103,13 @@ class Engine:
     """Plans a run and commits its batches; subclasses compute the steps' outputs (:meth:`run`)."""
 
     def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
-        self.store, self.spec, self.cfg, self.run_id, self.progress = store, run, run.cfg, run_id, progress
+        self.store, self.run_spec, self.cfg, self.run_id, self.progress = (
+            store,
+            run,
+            run.cfg,
+            run_id,
+            progress,
+        )
         self.seconds: dict[str, float] = {}
         self.done: dict[str, int] = {}  # stage name -> meshes it processed
 
@@ -116,7 +122,7 @@ class Engine:
         """Plan the run, commit what discovery found, and start the summary."""
         summary = RunSummary(self.run_id)
         with Timer(self.seconds, "discover"):
-            plan = make_plan(self.store, library, self.spec)
+            plan = make_plan(self.store, library, self.run_spec)
         summary.n_files = len(plan.files) + len(plan.discover_errors)
         summary.hashed = plan.n_hashed
         summary.skipped = plan.skipped
@@ -221,7 +227,7 @@ class Engine:
         from the store); ``outputs(step, mesh_ids, make_input)`` gives each later step's output for the
         meshes that need it (computed here from ``make_input()``, or by another engine)."""
         paths = {f.mesh_id: f.source_path for f in plan.files}
-        source = self.spec.source
+        source = self.run_spec.source
         tables: dict[str, pa.Table] = {}
         errors: list[pa.Table] = []
         failed: set[str] = set()
@@ -238,7 +244,7 @@ class Engine:
         ids = list(dict.fromkeys(rows.column("mesh_id").to_pylist()))
 
         counted: dict[str, set[str]] = {}
-        for step in self.spec.downstream:
+        for step in self.run_spec.downstream:
             step_ids = [m for m in ids if m in plan.todo[step.key] and m not in failed]
             if not step_ids:
                 continue
@@ -270,6 +276,6 @@ class Engine:
         done = set(made.column("mesh_id").to_pylist()) if made is not None else set()
         stored = [m for m in mesh_ids if m not in done]
         if stored:
-            more = self.stored_rows(self.spec.step(step.input), stored)
+            more = self.stored_rows(self.run_spec.step(step.input), stored)
             src = more if src is None else pa.concat_tables([src, more])
         return src

@@ -69,17 +69,17 @@ class LocalEngine(Engine):
         t0 = time.perf_counter()
         plan, summary = self.begin(library)
         self._load_models(plan)
-        bars = progress_bars(self.progress, self.spec, plan)
+        bars = progress_bars(self.progress, self.run_spec, plan)
         try:
             for source_out, meshes_rows in self._rendered_batches(
-                plan, bars[self.spec.source.stage.name], summary
+                plan, bars[self.run_spec.source.stage.name], summary
             ):
                 summary.failed += self.commit_batch(plan, source_out, meshes_rows, bars, self._outputs)
             ids = plan.downstream_ids()
             for i in range(0, len(ids), self.cfg.batch_size):
                 chunk = ids[i : i + self.cfg.batch_size]
                 with Timer(self.seconds, "load_views"):
-                    views = self.stored_rows(self.spec.source, chunk)
+                    views = self.stored_rows(self.run_spec.source, chunk)
                 summary.failed += self.commit_batch(plan, views, [], bars, self._outputs)
         finally:
             for b in bars.values():
@@ -100,7 +100,7 @@ class LocalEngine(Engine):
 
     # ------------------------------------------------------------------ rendering
     def _render_stream(self, items: list[dict]) -> Iterator[tuple[dict, list[dict]]]:
-        source = self.spec.source
+        source = self.run_spec.source
         if self.cfg.workers <= 0:
             stage = source.stage.runner(self.cfg, self.run_id, source)
             for it in items:
@@ -129,7 +129,7 @@ class LocalEngine(Engine):
             {"mesh_id": m, "abs_path": first_file[m].abs_path, "format": first_file[m].format}
             for m in plan.render
         ]
-        name = self.spec.source.stage.name  # its seconds: the wait for rendered meshes
+        name = self.run_spec.source.stage.name  # its seconds: the wait for rendered meshes
         pending_rows: list[dict] = []
         pending_meshes: list[dict] = []
         n_in_batch = 0

@@ -98,7 +98,7 @@ class RayEngine(Engine):
         plan, summary = self.begin(library)
         items = self._items(plan)
         if items:
-            bars = progress_bars(self.progress, self.spec, plan)
+            bars = progress_bars(self.progress, self.run_spec, plan)
             try:
                 with Timer(self.seconds, "ray_start"):
                     started = _start_ray(self.cfg.ray)
@@ -124,13 +124,13 @@ class RayEngine(Engine):
             rows.append(self._item(plan, m, abs_path=f.abs_path, fmt=f.format))
         rows_stored = [self._item(plan, m) for m in plan.downstream_ids()]
         # inputs that are not produced in this run are read from the store by the render actors
-        need: dict[str, list[str]] = {k: [] for k in input_keys(self.spec)}
+        need: dict[str, list[str]] = {k: [] for k in input_keys(self.run_spec)}
         for r in rows_stored:
-            for inp in dict.fromkeys(self.spec.step(k).input for k in r["todo"]):
+            for inp in dict.fromkeys(self.run_spec.step(k).input for k in r["todo"]):
                 if inp is not None and inp not in r["todo"]:
                     need[inp].append(r["mesh_id"])
         for inp, ids in need.items():
-            step = self.spec.step(inp)
+            step = self.run_spec.step(inp)
             at = self._locate(step.dataset, step.fingerprint, ids)
             for r in rows_stored:
                 r[part_column(inp)] = at.get(r["mesh_id"])
@@ -141,7 +141,7 @@ class RayEngine(Engine):
             "mesh_id": mesh_id,
             "abs_path": abs_path,
             "format": fmt,
-            "todo": [s.key for s in self.spec.steps if mesh_id in plan.todo[s.key]],
+            "todo": [s.key for s in self.run_spec.steps if mesh_id in plan.todo[s.key]],
         }
 
     def _locate(self, dataset: str, fp: str, mesh_ids: list[str]) -> dict[str, str]:
@@ -214,23 +214,23 @@ class RayEngine(Engine):
         # a crashed actor is always replaced; the batch it held is retried max_retries times, then dropped
         # (and recorded as errors rows by the driver) so one poisonous batch cannot stall the pool
         retry = {"max_restarts": -1, "max_task_retries": opts.max_retries}
-        steps = [s for s in self.spec.downstream if any(s.key in r["todo"] for r in items)]
+        steps = [s for s in self.run_spec.downstream if any(s.key in r["todo"] for r in items)]
         n_caption = sum(opts.caption_actors for s in steps if _captioner_pool(s))
         n_embed = sum(opts.embed_actors for s in steps if not _captioner_pool(s))
-        source = self.spec.source.key
+        source = self.run_spec.source.key
         n_render = sum(source in r["todo"] for r in items)
         cpus, gpus = resources.get("CPU", 1.0), resources.get("GPU", 0.0)
         layout = plan_layout(opts, cpus, gpus, n_caption, n_embed, n_render)
         logging.getLogger(__name__).info("ray layout: %s", layout.describe())
         self.layout = layout
 
-        table = pa.Table.from_pylist(items, schema=row_schema(self.spec))
+        table = pa.Table.from_pylist(items, schema=row_schema(self.run_spec))
         step = max(1, opts.render_batch_size)
         ds = ray.data.from_arrow([table.slice(i, step) for i in range(0, table.num_rows, step)])
         common = {"batch_format": "pyarrow", "zero_copy_batch": True, **retry}
         ds = ds.map_batches(
             RenderWorker,
-            fn_constructor_args=(self.spec, self.run_id, n_render > 0),
+            fn_constructor_args=(self.run_spec, self.run_id, n_render > 0),
             batch_size=step,
             compute=_pool(layout.render_workers),
             num_cpus=layout.render_cpus,
@@ -240,7 +240,7 @@ class RayEngine(Engine):
             big = _captioner_pool(s)
             ds = ds.map_batches(
                 StepWorker,
-                fn_constructor_args=(self.spec, self.run_id, s.key, s is steps[-1]),
+                fn_constructor_args=(self.run_spec, self.run_id, s.key, s is steps[-1]),
                 batch_size=opts.caption_batch_size if big else opts.embed_batch_size,
                 compute=_pool(opts.caption_actors if big else opts.embed_actors),
                 num_cpus=layout.model_cpus,
@@ -252,11 +252,11 @@ class RayEngine(Engine):
     # ------------------------------------------------------------------ committing
     def _commit_rows(self, plan: Plan, rows: list[dict], bars, summary: RunSummary) -> None:
         """Commit a batch of finished meshes exactly as the local engine commits its batches."""
-        for name, column in timing_columns(self.spec).items():
+        for name, column in timing_columns(self.run_spec).items():
             total = sum(r[column] or 0.0 for r in rows)
             if total:
                 self.seconds[name] = self.seconds.get(name, 0.0) + total
-        source = self.spec.source
+        source = self.run_spec.source
         rendered = [r for r in rows if source.key in r["todo"]]
         if rendered:
             source_out = pa.concat_tables([unpack(r[source.key]) for r in rendered])
@@ -283,7 +283,7 @@ class RayEngine(Engine):
         errors, meshes_rows = [], []
         for r in lost:
             # charged to the first step the mesh needed
-            step = next((s for s in self.spec.steps if s.key in r["todo"]), self.spec.steps[-1])
+            step = next((s for s in self.run_spec.steps if s.key in r["todo"]), self.run_spec.steps[-1])
             errors.append(
                 {
                     "run_id": self.run_id,
@@ -296,7 +296,7 @@ class RayEngine(Engine):
                     "at": now,
                 }
             )
-            if step is self.spec.source:
+            if step is self.run_spec.source:
                 meshes_rows.extend(self.rendered_mesh_rows(plan, r["mesh_id"], [{"error": reason}]))
         tables = {"errors": pa.Table.from_pylist(errors, schema=schemas.ERRORS)}
         if meshes_rows:
