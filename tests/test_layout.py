@@ -200,3 +200,33 @@ def test_steps_follow_the_declaration():
     assert tuple(force.choices) == STAGE_NAMES
     with pytest.raises(ValueError, match="unknown --force stage"):
         OnboardConfig(force=("nope",))
+
+
+def test_profile_and_fingerprints_resolved_once_per_run(tmp_path, offline_models, monkeypatch):
+    """One run resolves its config once (one profile, one set of fingerprints), then passes it down."""
+    import shutil
+
+    from conftest import SAMPLE_LIBRARY
+    from onboard_helpers import onboard
+
+    import pipeline.onboard.config as config
+    from pipeline.mesh.settings import RenderConfig
+
+    calls = {"get_profile": 0, "fingerprint": 0}
+    real_profile, real_render_fp = config.get_profile, RenderConfig.fingerprint
+
+    def counting_profile(*a, **kw):
+        calls["get_profile"] += 1
+        return real_profile(*a, **kw)
+
+    def counting_render_fp(self):
+        calls["fingerprint"] += 1
+        return real_render_fp(self)
+
+    monkeypatch.setattr(config, "get_profile", counting_profile)
+    monkeypatch.setattr(RenderConfig, "fingerprint", counting_render_fp)
+    lib = tmp_path / "lib"
+    shutil.copytree(SAMPLE_LIBRARY / "011_banana", lib / "banana")
+    summary = onboard(lib, tmp_path / "store", offline_models, render=RenderConfig(resolution=64))
+    assert summary.rendered == 1 and summary.captioned == 1
+    assert calls == {"get_profile": 1, "fingerprint": 1}
