@@ -15,7 +15,7 @@ from faults.library import RESOLUTION, copy_tree, write_library
 @pytest.fixture(scope="session")
 def fault_base(tmp_path_factory, offline_models):
     """One small library and its store, built once; every case works on a copy."""
-    import pipeline.onboard.engines.local as executor
+    import pipeline.onboard.run as executor
     from pipeline.mesh.settings import RenderConfig
     from pipeline.onboard.config import OnboardConfig
 
@@ -32,7 +32,7 @@ def fault_base(tmp_path_factory, offline_models):
 def shared_models(offline_models):
     """The corpus's command-line onboarding runs reuse the session's models (loading them per case is
     slow); only while a corpus test runs, so other tests' CLI runs load their own."""
-    import pipeline.onboard.engines.local as executor
+    import pipeline.onboard.run as executor
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(

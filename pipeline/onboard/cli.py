@@ -20,7 +20,8 @@ from pipeline.cli_common import (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.onboard.config import DEFAULT_MAX_TEXTURE_PIXELS, STAGES
+    from pipeline.onboard.config import DEFAULT_MAX_TEXTURE_PIXELS
+    from pipeline.onboard.stages import STAGE_NAMES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
     p = OneLineParser(
@@ -94,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--force",
         action="append",
         default=[],
-        choices=list(STAGES),
+        choices=list(STAGE_NAMES),
         help="redo STAGE (and what depends on it) for every mesh; repeatable",
     )
     p.add_argument(
@@ -169,9 +170,9 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
 
     from pipeline.models.registry import ModelLoadError
-    from pipeline.onboard.engines.local import run_onboarding
     from pipeline.onboard.engines.ray import RayEngineError
     from pipeline.onboard.engines.render_pool import RenderSetupError
+    from pipeline.onboard.run import run_onboarding
     from pipeline.store import StoreError
 
     try:
