@@ -10,6 +10,9 @@ from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.stages import STAGE_NAMES, Step, resolve_steps
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
 
+#: Textures with more pixels than this fail their mesh (decompression-bomb guard); ``--max-texture-pixels``.
+DEFAULT_MAX_TEXTURE_PIXELS = 8192 * 8192
+
 
 @dataclass(frozen=True)
 class OnboardConfig:
@@ -20,6 +23,7 @@ class OnboardConfig:
     prompt_style: str = DEFAULT_PROMPT_STYLE
     render: RenderConfig = field(default_factory=RenderConfig)
     max_faces: int = 2_000_000
+    max_texture_pixels: int = DEFAULT_MAX_TEXTURE_PIXELS  # not fingerprinted: a guard, not a look
     render_timeout_s: float = 120.0
     workers: int = 2
     batch_size: int = 16
@@ -34,6 +38,15 @@ class OnboardConfig:
             raise ValueError(
                 f"unknown --prompt-style {self.prompt_style!r}; choose from {', '.join(PROMPT_STYLES)}"
             )
+        import math
+
+        if not (math.isfinite(self.render_timeout_s) and self.render_timeout_s > 0):
+            raise ValueError(f"render timeout must be > 0 seconds, got {self.render_timeout_s}")
+        for name in ("max_faces", "max_texture_pixels", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
         bad = [s for s in self.force if s not in STAGE_NAMES]
         if bad:
             raise ValueError(f"unknown --force stage {bad[0]!r}; stages: {', '.join(STAGE_NAMES)}")

@@ -76,7 +76,8 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
     from pathlib import Path
 
     root = str(Path(library).resolve())
-    found = walk_library(root)
+    problems: list[tuple[FoundFile, str]] = []
+    found = walk_library(root, problems)
     state = mesh_state(store, root)
     rows = state.to_pylist()
     by_path: dict[str, list[dict]] = {}
@@ -88,13 +89,16 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
         if live:
             current[path] = max(live, key=lambda r: (r["run_id"], r["seen_at"]))
 
-    files, errors, n_hashed = [], [], 0
+    files, errors, n_hashed = [], list(problems), 0
     for f in found:
         cached = current.get(f.source_path)
         try:
             identify(f, cached)
         except DiscoveryError as exc:
             errors.append((f, str(exc)))
+            continue
+        except Exception as exc:  # one file never stops a run
+            errors.append((f, f"{type(exc).__name__}: {exc}"))
             continue
         n_hashed += cached is None or cached["mesh_id"] != f.mesh_id or cached["mtime_ns"] != f.mtime_ns
         files.append(f)

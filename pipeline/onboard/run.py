@@ -58,6 +58,11 @@ def run_onboarding(
             "stage_seconds_json": json.dumps(summary.seconds),
             "status": summary.status,
         }
-        store.commit({"runs": pa.Table.from_pylist([row], schema=schemas.RUNS)}, run_id)
-        store.close()
+        try:
+            store.commit({"runs": pa.Table.from_pylist([row], schema=schemas.RUNS)}, run_id)
+        except Exception:
+            if summary.status == "ok":  # the run's own error (if any) is the one to report
+                raise
+        finally:
+            store.close()
     return summary

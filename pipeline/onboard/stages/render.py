@@ -69,6 +69,7 @@ class RenderStage:
                 max_faces=self.cfg.max_faces,
                 up=rc.up,
                 max_texture=rc.max_texture,
+                max_texture_pixels=self.cfg.max_texture_pixels,
             )
             views = self.renderer.render(mesh)
         except Exception as exc:  # one bad mesh must never stop the run
