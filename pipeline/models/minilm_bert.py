@@ -41,87 +41,54 @@ def load_tokenizer(model_dir: Path, max_length: int):
     return tok
 
 
-def build_bert(model_dir: Path, config: dict):
-    """A ``torch.nn.Module`` with BERT's layers, weights loaded from ``model.safetensors`` (eval mode)."""
-    import torch
+def load_weights(model_dir: Path) -> dict:
+    """``model.safetensors`` as torch tensors, the ``bert.`` prefix of some checkpoints removed."""
     from safetensors.torch import load_file
 
-    class Layer(torch.nn.Module):
-        def __init__(self, h: int, inter: int, heads: int, eps: float) -> None:
-            super().__init__()
-            self.heads = heads
-            self.q, self.k, self.v = (torch.nn.Linear(h, h) for _ in range(3))
-            self.attn_out, self.attn_norm = torch.nn.Linear(h, h), torch.nn.LayerNorm(h, eps=eps)
-            self.up, self.down = torch.nn.Linear(h, inter), torch.nn.Linear(inter, h)
-            self.out_norm = torch.nn.LayerNorm(h, eps=eps)
-
-        def forward(self, x, keep):  # keep: (B, 1, 1, T) bool, True = a real token
-            b, t, h = x.shape
-
-            def split(z):
-                return z.view(b, t, self.heads, h // self.heads).transpose(1, 2)
-
-            a = torch.nn.functional.scaled_dot_product_attention(
-                split(self.q(x)), split(self.k(x)), split(self.v(x)), attn_mask=keep
-            )
-            x = self.attn_norm(x + self.attn_out(a.transpose(1, 2).reshape(b, t, h)))
-            return self.out_norm(x + self.down(torch.nn.functional.gelu(self.up(x))))
-
-    class Bert(torch.nn.Module):
-        def __init__(self, c: dict) -> None:
-            super().__init__()
-            h, eps = c["hidden_size"], c.get("layer_norm_eps", 1e-12)
-            self.word = torch.nn.Embedding(c["vocab_size"], h)
-            self.position = torch.nn.Embedding(c["max_position_embeddings"], h)
-            self.token_type = torch.nn.Embedding(c.get("type_vocab_size", 2), h)
-            self.norm = torch.nn.LayerNorm(h, eps=eps)
-            self.layers = torch.nn.ModuleList(
-                Layer(h, c["intermediate_size"], c["num_attention_heads"], eps)
-                for _ in range(c["num_hidden_layers"])
-            )
-
-        def forward(self, ids, type_ids, mask):
-            pos = torch.arange(ids.shape[1], device=ids.device)[None, :]
-            x = self.norm(self.word(ids) + self.position(pos) + self.token_type(type_ids))
-            keep = mask.bool()[:, None, None, :]
-            for layer in self.layers:
-                x = layer(x, keep)
-            return x
-
-    model = Bert(config)
-    model.load_state_dict(_rename(load_file(str(model_dir / "model.safetensors"))), strict=True)
-    return model.eval()
+    return {k.removeprefix("bert."): v for k, v in load_file(str(model_dir / "model.safetensors")).items()}
 
 
-def _rename(weights: dict) -> dict:
-    """Hugging Face BERT parameter names -> this module's names (pooler and buffers dropped)."""
-    table = {
-        "attention.self.query": "q",
-        "attention.self.key": "k",
-        "attention.self.value": "v",
-        "attention.output.dense": "attn_out",
-        "attention.output.LayerNorm": "attn_norm",
-        "intermediate.dense": "up",
-        "output.dense": "down",
-        "output.LayerNorm": "out_norm",
-    }
-    top = {
-        "embeddings.word_embeddings": "word",
-        "embeddings.position_embeddings": "position",
-        "embeddings.token_type_embeddings": "token_type",
-        "embeddings.LayerNorm": "norm",
-    }
-    out = {}
-    for name, tensor in weights.items():
-        name = name.removeprefix("bert.")
-        stem, _, leaf = name.rpartition(".")
-        if stem in top:
-            out[f"{top[stem]}.{leaf}"] = tensor
-        elif name.startswith("encoder.layer."):
-            n, rest = name[len("encoder.layer.") :].split(".", 1)
-            stem, _, leaf = rest.rpartition(".")
-            out[f"layers.{n}.{table[stem]}.{leaf}"] = tensor
-    return out
+def bert_forward(w: dict, config: dict, ids, type_ids, mask):
+    """BERT's last hidden state (B, T, H), computed functionally from the checkpoint's tensors ``w``.
+
+    Functional on purpose: building ``torch.nn`` modules first would spend time on a random init (and, on
+    the meta device, import torch._dynamo) only to overwrite every parameter with the file's.
+    """
+    import torch
+    from torch.nn import functional as F
+
+    eps = config.get("layer_norm_eps", 1e-12)
+    heads = config["num_attention_heads"]
+
+    def lin(x, name):
+        return F.linear(x, w[f"{name}.weight"], w[f"{name}.bias"])
+
+    def norm(x, name):
+        return F.layer_norm(x, x.shape[-1:], w[f"{name}.weight"], w[f"{name}.bias"], eps)
+
+    b, t = ids.shape
+    pos = torch.arange(t, device=ids.device)[None, :]
+    e = "embeddings."
+    x = (
+        F.embedding(ids, w[e + "word_embeddings.weight"])
+        + F.embedding(pos, w[e + "position_embeddings.weight"])
+        + F.embedding(type_ids, w[e + "token_type_embeddings.weight"])
+    )
+    x = norm(x, e + "LayerNorm")
+    h = x.shape[-1]
+    keep = mask.bool()[:, None, None, :]  # True = a real token
+
+    def split(z):
+        return z.view(b, t, heads, h // heads).transpose(1, 2)
+
+    for i in range(config["num_hidden_layers"]):
+        L = f"encoder.layer.{i}."
+        q, k, v = (split(lin(x, L + f"attention.self.{n}")) for n in ("query", "key", "value"))
+        a = F.scaled_dot_product_attention(q, k, v, attn_mask=keep).transpose(1, 2).reshape(b, t, h)
+        x = norm(x + lin(a, L + "attention.output.dense"), L + "attention.output.LayerNorm")
+        up = F.gelu(lin(x, L + "intermediate.dense"))
+        x = norm(x + lin(up, L + "output.dense"), L + "output.LayerNorm")
+    return x
 
 
 class MeanPooledBert:
@@ -137,7 +104,8 @@ class MeanPooledBert:
         self.dim = int(config["hidden_size"])
         self.tokenizer = load_tokenizer(model_dir, max_seq_length(model_dir, config))
         self.device = torch.device(device)
-        self.model = build_bert(model_dir, config).to(self.device)
+        self.config = config
+        self.weights = {k: v.to(self.device) for k, v in load_weights(model_dir).items()}
 
     def encode(self, texts: list[str], batch_size: int = 64) -> np.ndarray:
         """(n, dim) float32 mean-pooled vectors (not normalised), batched in input order."""
@@ -152,7 +120,7 @@ class MeanPooledBert:
 
             ids, types, mask = tensor("ids"), tensor("type_ids"), tensor("attention_mask")
             with torch.inference_mode():
-                hidden = self.model(ids, types, mask)
+                hidden = bert_forward(self.weights, self.config, ids, types, mask)
                 m = mask[:, :, None].to(hidden.dtype)
                 pooled = (hidden * m).sum(1) / m.sum(1).clamp(min=1e-9)
             out.append(pooled.float().cpu().numpy())

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from pipeline.cli_common import fail
+from pipeline.threads import add_torch_threads_arg
 
 ROLES = "captioner, text_encoder, view_encoder, clip_image_encoder, detector, segmenter"
 
@@ -85,6 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument(
         "--no-cache", action="store_true", help="do not read or write the embedding cache under STORE/_cache"
     )
+    add_torch_threads_arg(how, "half the cores, 1 to 4")
 
     out = p.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print the full result as JSON")
@@ -162,7 +164,10 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
 
+    from pipeline.threads import apply_torch_threads
+
     _quiet_model_loading()
+    apply_torch_threads(args.torch_threads)
     settings_changes = {"prompt_weight": args.prompt_weight}
     retriever = Retriever.open(
         args.store,
