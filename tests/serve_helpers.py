@@ -20,8 +20,20 @@ def fake_view(rgb: tuple[int, int, int], w: int, h: int, pad: int = 10):
     return Image.fromarray(arr)
 
 
-def add_fake_mesh(store_path: str | Path, name: str, rgb: tuple[int, int, int], w: int, h: int) -> str:
-    """Commit mesh ``name`` (views of an ``rgb`` block) as a new onboarding run; returns its mesh_id."""
+def add_fake_mesh(
+    store_path: str | Path,
+    name: str,
+    rgb: tuple[int, int, int],
+    w: int,
+    h: int,
+    *,
+    library_root: str = "/library",
+    deps: list[str] = (),
+) -> str:
+    """Commit mesh ``name`` (views of an ``rgb`` block) as a new onboarding run; returns its mesh_id.
+
+    ``library_root``/``deps``: where ``<name>/model.obj`` and its referenced files lie (for export tests).
+    """
     from pipeline import schemas
     from pipeline.render import encode_png
     from pipeline.store import Store, new_run_id, slug
@@ -39,8 +51,9 @@ def add_fake_mesh(store_path: str | Path, name: str, rgb: tuple[int, int, int], 
         mesh = {
             "mesh_id": mesh_id,
             "source_path": f"{name}/model.obj",
-            "library_root": "/library",
+            "library_root": library_root,
             "name": name,
+            "deps": [{"path": d, "size": 1, "mtime_ns": 0} for d in deps],
             "format": "obj",
             "status": "active",
             "seen_at": datetime.now(timezone.utc),
@@ -61,7 +74,12 @@ def add_fake_mesh(store_path: str | Path, name: str, rgb: tuple[int, int, int], 
             {
                 "meshes": pa.Table.from_pylist([mesh], schema=schemas.MESHES),
                 f"text_embeddings/{slug(keys['text_encoder'])}": embedding_table(
-                    [mesh_id] * len(caps), range(len(caps)), caps, keys["text_encoder"], fps["embed_text"], run_id
+                    [mesh_id] * len(caps),
+                    range(len(caps)),
+                    caps,
+                    keys["text_encoder"],
+                    fps["embed_text"],
+                    run_id,
                 ),
                 f"image_embeddings/{slug(keys['view_encoder'])}": embedding_table(
                     [mesh_id] * len(vecs),
