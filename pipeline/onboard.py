@@ -7,6 +7,7 @@ import json
 import sys
 
 from pipeline.cli_common import add_model_args, fail, model_overrides
+from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -77,6 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="GPUs per model actor (default: encoders a quarter, captioners share the rest)",
     )
+    add_torch_threads_arg(p, "every core (onboarding is throughput work)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     return p
@@ -91,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
+    if args.torch_threads is not None:  # unset: torch's own default (every core)
+        from pipeline.threads import apply_torch_threads
+
+        apply_torch_threads(args.torch_threads)
     try:
         cfg = OnboardConfig(
             profile=args.profile,

@@ -6,7 +6,8 @@ Defaults (``docs/cli.md``):
   short texts), so extra threads buy little, and on a busy machine OpenMP threads that outnumber the free
   cores spin against each other: a warm offline query measured 0.9-1.3 s with 2 threads on a loaded
   2-core machine and 40-110 ms with 1 (docs/performance.md, "Cold start").
-* onboard: every core (torch's own default), since onboarding is batch throughput work.
+* onboard: torch's own default (every core, or ``OMP_NUM_THREADS``), since onboarding is batch
+  throughput work; ``--torch-threads`` overrides it.
 """
 
 from __future__ import annotations
@@ -28,10 +29,6 @@ def cpu_count() -> int:
 def default_query_threads() -> int:
     """Half the cores, clamped to 1..4 (query and serve)."""
     return max(1, min(4, cpu_count() // 2))
-
-
-def default_onboard_threads() -> int:
-    return cpu_count()
 
 
 def positive_int(text: str) -> int:

@@ -60,7 +60,9 @@ def server(sample_store, offline_models):
         Retriever.open(sample_store, models=dict(offline_models)), ServiceLimits(reload_interval=0)
     )
     port = free_port()
-    srv = uvicorn.Server(uvicorn.Config(create_app(service), host="127.0.0.1", port=port, log_level="warning"))
+    srv = uvicorn.Server(
+        uvicorn.Config(create_app(service), host="127.0.0.1", port=port, log_level="warning")
+    )
     thread = threading.Thread(target=srv.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -125,9 +127,7 @@ def browser(tmp_path):
     if not CHROMIUM or not DRIVER:
         pytest.skip("headless Chromium not found: apt-get install chromium chromium-driver")
     port = free_port()
-    proc = subprocess.Popen(
-        [DRIVER, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    proc = subprocess.Popen([DRIVER, f"--port={port}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         import httpx
 

@@ -279,7 +279,7 @@ def convex_hull_area(points: np.ndarray) -> float:
     hi = np.full(len(ys), -np.inf)
     np.minimum.at(lo, inverse, points[:, 0])
     np.maximum.at(hi, inverse, points[:, 0])
-    pts = sorted({(float(x), float(y)) for x, y in zip(np.r_[lo, hi], np.r_[ys, ys])})
+    pts = sorted({(float(x), float(y)) for x, y in zip(np.r_[lo, hi], np.r_[ys, ys], strict=True)})
     if len(pts) < 3:
         return 0.0
 

@@ -163,7 +163,6 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.profiles import parse_overrides
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
-
     from pipeline.threads import apply_torch_threads
 
     _quiet_model_loading()
