@@ -48,9 +48,8 @@ class Retriever:
         self.load_seconds: dict[str, float] = {}
         self._models: dict[str, object] = dict(models or {})
         self._model_lock = threading.Lock()
-        self._db_lock = (
-            threading.Lock()
-        )  # tables.con (candidate_views, mesh lookups): one statement at a time
+        # tables.con (candidate_views, mesh lookups) runs one statement at a time
+        self._db_lock = threading.Lock()
         self.version = None  # store version this state was read at (set by open)
         self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
