@@ -159,14 +159,16 @@ def reload_latency(url: str, store: Path, new_mesh: Path, data: bytes, timeout: 
     deadline = time.monotonic() + timeout
     committed = None
     found = None
-    probe = {"prompt": "the object", "box": BOX, "mode": "image-only", "top": "1000"}
+    probe = {"prompt": "the object", "box": BOX, "mode": "image-only", "top": "100"}
     with httpx.Client(base_url=url, timeout=120) as http:
         while time.monotonic() < deadline and found is None:
             if committed is None and store_version(store) != before:
                 committed = time.monotonic()
             if committed is not None:
                 r = http.post("/query", files={"image": ("t.jpg", data)}, data=probe)
-                names = [c["name"] for c in r.json().get("candidates", [])] if r.status_code == 200 else []
+                if r.status_code != 200:
+                    raise SystemExit(f"reload probe failed: {r.status_code} {r.text[:200]}")
+                names = [c["name"] for c in r.json()["candidates"]]
                 if new_mesh.name in names:
                     found = time.monotonic()
                     break
@@ -175,7 +177,9 @@ def reload_latency(url: str, store: Path, new_mesh: Path, data: bytes, timeout: 
     bg.join(timeout=120)
     onboard.wait(timeout=timeout)
     shutil.rmtree(lib, ignore_errors=True)
+    stats = httpx.get(url + "/stats", timeout=30).json()
     return {
+        "reload_error": stats.get("last_reload_error"),
         "commit_to_answer_s": None if found is None or committed is None else found - committed,
         "onboard_rc": onboard.returncode,
         "errors_during": len(load.errors),
@@ -238,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"reload: {args.new_mesh.name} returned {'never' if lat is None else f'{lat:.2f} s'} after its "
                 f"commit (onboard rc {res['onboard_rc']}; {res['requests_during']} requests meanwhile, "
-                f"{res['errors_during']} errors)",
+                f"{res['errors_during']} errors)"
+                + (f"; reload error: {res['reload_error']}" if res["reload_error"] else ""),
                 flush=True,
             )
     finally:
