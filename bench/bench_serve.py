@@ -161,17 +161,20 @@ def reload_latency(url: str, store: Path, new_mesh: Path, data: bytes, timeout: 
     found = None
     probe = {"prompt": "the object", "box": BOX, "mode": "image-only", "top": "100"}
     with httpx.Client(base_url=url, timeout=120) as http:
+
+        def ids() -> set[str]:
+            r = http.post("/query", files={"image": ("t.jpg", data)}, data=probe)
+            if r.status_code != 200:
+                raise SystemExit(f"reload probe failed: {r.status_code} {r.text[:200]}")
+            return {c["mesh_id"] for c in r.json()["candidates"]}
+
+        known = ids()  # every mesh of the store (image-only ranks them all), before the commit
         while time.monotonic() < deadline and found is None:
             if committed is None and store_version(store) != before:
                 committed = time.monotonic()
-            if committed is not None:
-                r = http.post("/query", files={"image": ("t.jpg", data)}, data=probe)
-                if r.status_code != 200:
-                    raise SystemExit(f"reload probe failed: {r.status_code} {r.text[:200]}")
-                names = [c["name"] for c in r.json()["candidates"]]
-                if new_mesh.name in names:
-                    found = time.monotonic()
-                    break
+            if committed is not None and ids() - known:
+                found = time.monotonic()
+                break
             time.sleep(0.05)
     load.stop.set()
     bg.join(timeout=120)
@@ -240,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
             res = reload_latency(url, store, args.new_mesh.resolve(), data)
             lat = res["commit_to_answer_s"]
             print(
-                f"reload: {args.new_mesh.name} returned {'never' if lat is None else f'{lat:.2f} s'} after its "
+                f"reload: the mesh of {args.new_mesh.name} returned {'never' if lat is None else f'{lat:.2f} s'} after its "
                 f"commit (onboard rc {res['onboard_rc']}; {res['requests_during']} requests meanwhile, "
                 f"{res['errors_during']} errors)"
                 + (f"; reload error: {res['reload_error']}" if res["reload_error"] else ""),
