@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 _applied: int | None = None
 
@@ -54,13 +55,21 @@ def add_torch_threads_arg(p, default_help: str) -> None:
 
 
 def apply_torch_threads(n: int | None, default: int | None = None) -> int:
-    """``torch.set_num_threads`` once per process (later calls keep the first value); returns it."""
+    """Set torch's CPU threads once per process (later calls keep the first value); returns the count.
+
+    When torch is not imported yet (the offline CPU path never imports it) the count goes to
+    ``OMP_NUM_THREADS``, which torch reads when it is imported; before NumPy is imported it also caps
+    its BLAS (``OPENBLAS_NUM_THREADS``, ``MKL_NUM_THREADS``), which the NumPy MiniLM path multiplies with.
+    """
     global _applied
     if _applied is not None:
         return _applied
-    import torch
-
     n = int(n or default or default_query_threads())
-    torch.set_num_threads(n)
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(n)
+    else:
+        os.environ["OMP_NUM_THREADS"] = str(n)
+    if "numpy" not in sys.modules:
+        os.environ["OPENBLAS_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = str(n)
     _applied = n
     return n

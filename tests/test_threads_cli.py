@@ -25,6 +25,18 @@ def test_positive_int_and_default():
     assert 1 <= default_query_threads() <= 4
 
 
+def test_torch_threads_before_torch_is_imported():
+    out = run_py(
+        [
+            "-c",
+            "import os; from pipeline.threads import apply_torch_threads as a; a(2); "
+            "import torch; print(torch.get_num_threads(), os.environ['OPENBLAS_NUM_THREADS'])",
+        ]
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["2", "2"]
+
+
 def test_torch_threads_applied_once():
     out = run_py(
         [

