@@ -203,9 +203,6 @@ def main(argv: list[str] | None = None) -> int:
 
     data = PHOTO.read_bytes()
     print(f"store {args.store}; {os.cpu_count()} cores; photo {PHOTO.name} box {BOX}", flush=True)
-    warm = warm_in_process(args.store, args.warm_runs)
-    print(f"in-process warm query p50: {warm:.1f} ms ({args.warm_runs} runs)", flush=True)
-
     work = Path(tempfile.mkdtemp(prefix="oscar-bench-serve-"))
     store = work / "store"
     shutil.copytree(args.store, store, ignore=shutil.ignore_patterns("_lock"))
@@ -214,12 +211,25 @@ def main(argv: list[str] | None = None) -> int:
     server = start_server(store, port, [a for s in args.server_arg for a in s.split()])
     try:
         Load(url, 1, data).run(max_requests=5)  # warm-up
-        print(
-            f"{'clients':>7} {'requests':>8} {'req/s':>7} {'p50 ms':>8} {'p99 ms':>8} {'errors':>6}  p50/warm"
-        )
-        for n in [int(x) for x in args.clients.split(",") if x.strip()]:
+        # the in-process baseline right before and after the 1-client phase (the server idles meanwhile):
+        # on a shared machine the load changes by the minute, so only adjacent numbers compare
+        warm_runs: list[float] = []
+        warm = float("nan")
+        for i, n in enumerate(int(x) for x in args.clients.split(",") if x.strip()):
+            if i == 0:
+                warm_runs.append(warm_in_process(args.store, args.warm_runs))
             load = Load(url, n, data)
             wall = load.run(seconds=args.duration)
+            if i == 0:
+                warm_runs.append(warm_in_process(args.store, args.warm_runs))
+                warm = statistics.mean(warm_runs)
+                print(
+                    f"in-process warm query p50: {warm_runs[0]:.1f} ms before, {warm_runs[1]:.1f} ms after "
+                    f"the first phase ({args.warm_runs} runs each; baseline {warm:.1f} ms)\n"
+                    f"{'clients':>7} {'requests':>8} {'req/s':>7} {'p50 ms':>8} {'p99 ms':>8} {'errors':>6}  "
+                    "p50/warm",
+                    flush=True,
+                )
             done = len(load.latencies)
             p50 = pct(load.latencies, 50)
             print(
