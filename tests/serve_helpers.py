@@ -35,7 +35,7 @@ def add_fake_mesh(
     ``library_root``/``deps``: where ``<name>/model.obj`` and its referenced files lie (for export tests).
     """
     from pipeline import schemas
-    from pipeline.render import encode_png
+    from pipeline.mesh.render import encode_png
     from pipeline.store import Store, new_run_id, slug
 
     models = fake_models()

@@ -12,7 +12,7 @@ from conftest import copy_ycb
 from onboard_helpers import content, onboard
 
 from pipeline import schemas
-from pipeline.render import decode_png
+from pipeline.mesh.render import decode_png
 from pipeline.store import Store
 
 MESHES = ["005_tomato_soup_can", "011_banana", "061_foam_brick"]
@@ -82,7 +82,7 @@ def test_captions_are_sentences(built):
 
 def test_unchanged_rerun_does_no_work(built, offline_models, monkeypatch):
     lib, store, _ = built
-    import pipeline.discover as discover
+    import pipeline.mesh.discover as discover
 
     def no_hash(*a, **k):
         raise AssertionError("unchanged files must not be re-hashed")
@@ -118,7 +118,7 @@ def test_modified_added_removed_files(tmp_path, offline_models):
     summary = onboard(lib, store, offline_models)
     assert summary.added == 2 and summary.removed == 2 and summary.rendered == 2
 
-    from pipeline.plan import mesh_state
+    from pipeline.onboard.plan import mesh_state
 
     state = mesh_state(Store.open(store), str(lib.resolve())).to_pylist()
     active = {r["name"]: r["mesh_id"] for r in state if r["status"] == "active"}
@@ -164,11 +164,26 @@ def test_force_and_config_change_redo_only_their_stages(tmp_path, offline_models
 def test_cap3d_camera_layout(tmp_path, offline_models):
     lib = copy_ycb(tmp_path / "lib", MESHES[:1])
     store = tmp_path / "store"
-    from pipeline.config import RenderConfig
+    from pipeline.mesh.settings import RenderConfig
 
-    onboard(lib, store, offline_models, render=RenderConfig(cameras="cap3d", resolution=128))
-    views = Store.open(store).read("views")
-    assert views.num_rows == 8
+    cfg = RenderConfig(cameras="cap3d", resolution=128, extra_bg_view=True)
+    assert cfg.fingerprint() != RenderConfig(cameras="cap3d", resolution=128).fingerprint()
+    assert RenderConfig().fingerprint() == RenderConfig(extra_bg_view=False).fingerprint()
+    onboard(lib, store, offline_models, render=cfg)
+    s = Store.open(store)
+    views = s.read("views").sort_by("view_index")
+    assert views.num_rows == 9  # the 8 Cap3D views + the extra background view
     assert pc.max(views.column("width")).as_py() == 128
     elev = views.column("elevation_deg").to_pylist()
     assert min(elev) < -20 and max(elev) > 20  # cap3d has views below and above the object
+    rows = views.to_pylist()
+    assert rows[8]["camera_pose"] == rows[0]["camera_pose"]  # view 0's camera ...
+    bg = np.asarray(decode_png(rows[8]["image"]))
+    assert bg[0, 0].tolist() == [0, 0, 0] and np.asarray(decode_png(rows[0]["image"]))[0, 0].tolist() == [
+        205,
+        205,
+        205,
+    ]  # ... on black instead of gray
+    assert sorted(s.read("captions").column("view_index").to_pylist()) == list(range(8))  # not captioned
+    (img_ds,) = s.datasets("image_embeddings")
+    assert sorted(s.read(img_ds).column("view_index").to_pylist()) == list(range(9))  # a stage-2 view

@@ -26,6 +26,8 @@ import pyarrow as pa
 from pipeline.db import load_sql
 
 SLICES = 8
+#: What the fallback top-k counts: caption rows (paper, reference scripts) or models.
+FALLBACK_UNITS = ("captions", "meshes")
 #: rows per Arrow record batch: DuckDB scans batches in parallel
 BATCH_ROWS = 65536
 
@@ -84,6 +86,7 @@ class TextFilter:
         self.n_rows = captions.num_rows
         self.threads = threads
         self.sql = load_sql("stage1_text_filter")
+        self._matrix: np.ndarray | None = None
         self._idle: queue.SimpleQueue = queue.SimpleQueue()  # warm connections not in use
         self._all: list = []
         self._lock = threading.Lock()
@@ -116,8 +119,34 @@ class TextFilter:
         """The first connection (single-threaded callers and tests)."""
         return self._all[0]
 
-    def run(self, query: np.ndarray, threshold: float | None, fallback_k: int) -> Stage1Result:
-        """Models scoring >= ``threshold`` (best first), else the ``fallback_k`` best; ``None`` = top-k only."""
+    def caption_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mesh_idx, cosine) of every caption row, in table order (evaluation's view-level text ranking).
+
+        The same inner products as the SQL up to float rounding; the dense matrix is built on first use.
+        """
+        if self._matrix is None:  # threads racing here build the same matrix; _mesh_idx is set first
+            parts = [vectors(self.table, f"e{i}") for i in range(SLICES)]
+            self._mesh_idx = self.table.column("mesh_idx").to_numpy().astype(np.int32)
+            self._matrix = np.concatenate(parts, axis=1) if self.n_rows else np.zeros((0, 1), np.float32)
+        q = np.zeros(self.width * SLICES, np.float32)
+        v = np.asarray(query, dtype=np.float32).reshape(-1)
+        if v.shape[0] != self.dim:
+            raise ValueError(f"query vector has {v.shape[0]} dims, captions have {self.dim}")
+        q[: len(v)] = v
+        if not self.n_rows:
+            return np.zeros(0, np.int32), np.zeros(0, np.float32)
+        return self._mesh_idx, (self._matrix @ q).astype(np.float32)
+
+    def run(
+        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
+    ) -> Stage1Result:
+        """Models scoring >= ``threshold`` (best first); when none does (or ``threshold`` is ``None``) the
+        fallback: the distinct models of the ``fallback_k`` best captions (``fallback_unit="captions"``, the
+        paper's) or the ``fallback_k`` best models (``"meshes"``)."""
+        if fallback_unit not in FALLBACK_UNITS:
+            raise ValueError(
+                f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}"
+            )
         q = np.asarray(query, dtype=np.float32).reshape(-1)
         if q.shape[0] != self.dim:
             raise ValueError(f"query vector has {q.shape[0]} dims, captions have {self.dim}")
@@ -126,6 +155,7 @@ class TextFilter:
             **query_params(q, self.width),
             "threshold": None if threshold is None else float(threshold),
             "fallback_k": int(fallback_k),
+            "fallback_unit": fallback_unit,
         }
         with self.connection() as con:
             out = con.execute(self.sql, params).fetchnumpy()

@@ -11,7 +11,7 @@ from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.config import STAGES
+    from pipeline.onboard.config import STAGES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
     p = argparse.ArgumentParser(
@@ -34,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="oscar",
         choices=["oscar", "cap3d"],
         help="oscar: 4 views at -15 and 4 at +15 deg elevation; cap3d: the reference scripts' 8 positions",
+    )
+    p.add_argument(
+        "--extra-bg-view",
+        action="store_true",
+        help="also render view 0 on black as an extra stage-2 (DINOv2) reference view, not captioned "
+        "(the reference scripts' _bg render)",
     )
     p.add_argument("--resolution", type=int, default=512, help="view size in pixels (default: 512)")
     p.add_argument(
@@ -88,8 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
-    from pipeline.config import OnboardConfig, RenderConfig
-    from pipeline.ray_options import RayOptions
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.engines.ray_options import RayOptions
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
@@ -107,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
                 resolution=args.resolution,
                 upper_ring_offset_deg=args.upper_ring_offset,
                 up=args.up,
+                extra_bg_view=args.extra_bg_view,
             ),
             max_faces=args.max_faces,
             render_timeout_s=args.render_timeout,
@@ -127,11 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return fail(str(exc))
 
-    from pipeline.executor import run_onboarding
     from pipeline.models.registry import ModelLoadError
-    from pipeline.ray_engine import RayEngineError
+    from pipeline.onboard.engines.local import run_onboarding
+    from pipeline.onboard.engines.ray import RayEngineError
+    from pipeline.onboard.engines.render_pool import RenderSetupError
     from pipeline.store import StoreError
-    from pipeline.workers import RenderSetupError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
