@@ -61,11 +61,10 @@ def pct(values: list[float], q: float) -> float:
 
 
 def warm_in_process(store: str, runs: int) -> float:
-    """p50 ms of Retriever.query on the photo (models loaded, one warm-up query first)."""
+    """p50 ms of Retriever.query on the photo (models loaded, one warm-up query first), with the thread
+    settings the server uses (``apply_torch_threads`` ran first in :func:`main`)."""
     from pipeline.query import Retriever
-    from pipeline.threads import apply_torch_threads
 
-    apply_torch_threads(None)
     with Retriever.open(store) as r:
         r.query(str(PHOTO), PROMPT, box=BOX)
         times = []
@@ -200,7 +199,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--new-mesh", type=Path, help="mesh folder to onboard during the run (reload latency)")
     p.add_argument("--server-arg", action="append", default=[], help="extra pipeline.serve option")
     args = p.parse_args(argv)
+    from pipeline.threads import apply_torch_threads
 
+    # as the server does, before NumPy is imported: its BLAS would otherwise start one thread per core,
+    # which made the in-process baseline 5x slower than the server on this busy machine
+    apply_torch_threads(None)
     data = PHOTO.read_bytes()
     print(f"store {args.store}; {os.cpu_count()} cores; photo {PHOTO.name} box {BOX}", flush=True)
     work = Path(tempfile.mkdtemp(prefix="oscar-bench-serve-"))
