@@ -11,7 +11,7 @@ from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.onboard.config import STAGES
+    from pipeline.onboard.stages import STAGE_NAMES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
     p = argparse.ArgumentParser(
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--force",
         action="append",
         default=[],
-        choices=list(STAGES),
+        choices=list(STAGE_NAMES),
         help="redo STAGE (and what depends on it) for every mesh; repeatable",
     )
     p.add_argument(
@@ -136,9 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
 
     from pipeline.models.registry import ModelLoadError
-    from pipeline.onboard.engines.local import run_onboarding
     from pipeline.onboard.engines.ray import RayEngineError
     from pipeline.onboard.engines.render_pool import RenderSetupError
+    from pipeline.onboard.run import run_onboarding
     from pipeline.store import StoreError
 
     try:
