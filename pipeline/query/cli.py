@@ -135,7 +135,8 @@ def _prevalidate(args: argparse.Namespace) -> None:
         load_mask(args.mask, photo, limits.min_roi_side)
 
 
-def _quiet_model_loading() -> None:
+def quiet_model_loading() -> None:
+    """No download bars or tokenizer-fork warnings from Hugging Face libraries (also used by pipeline.serve)."""
     import os
 
     os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
@@ -174,7 +175,7 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
 
-    _quiet_model_loading()
+    quiet_model_loading()
     settings_changes = {"prompt_weight": args.prompt_weight}
     retriever = Retriever.open(
         args.store,

@@ -108,11 +108,11 @@ def build_service(args: argparse.Namespace):
     """Open the store and load the models once; returns the :class:`QueryService`."""
     from pipeline.profiles import parse_overrides
     from pipeline.query.api import Retriever
-    from pipeline.query.cli import _quiet_model_loading
+    from pipeline.query.cli import quiet_model_loading
     from pipeline.serve.service import QueryService, ServiceLimits
     from pipeline.threads import apply_torch_threads, cpu_count
 
-    _quiet_model_loading()
+    quiet_model_loading()
     threads = apply_torch_threads(args.torch_threads)
     workers = args.workers or max(1, min(4, cpu_count() // threads))
     retriever = Retriever.open(
