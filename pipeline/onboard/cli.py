@@ -17,6 +17,7 @@ from pipeline.cli_common import (
     positive_float,
     positive_int,
 )
+from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -122,6 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="GPUs per model actor (default: encoders a quarter, captioners share the rest)",
     )
+    add_torch_threads_arg(p, "every core (onboarding is throughput work)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     return p
@@ -137,6 +139,10 @@ def main(argv: list[str] | None = None) -> int:
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
+    if args.torch_threads is not None:  # unset: torch's own default (every core)
+        from pipeline.threads import apply_torch_threads
+
+        apply_torch_threads(args.torch_threads)
     try:
         cfg = OnboardConfig(
             profile=args.profile,

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from pipeline.cli_common import OneLineParser, fail, float_range, int_range, positive_int
+from pipeline.threads import add_torch_threads_arg
 
 ROLES = "captioner, text_encoder, view_encoder, clip_image_encoder, detector, segmenter"
 
@@ -97,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument(
         "--no-cache", action="store_true", help="do not read or write the embedding cache under STORE/_cache"
     )
+    add_torch_threads_arg(how, "half the cores, 1 to 4")
 
     out = p.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print the full result as JSON")
@@ -138,7 +140,8 @@ def _prevalidate(args: argparse.Namespace) -> None:
         load_mask(args.mask, photo, limits.min_roi_side)
 
 
-def _quiet_model_loading() -> None:
+def quiet_model_loading() -> None:
+    """No download bars or tokenizer-fork warnings from Hugging Face libraries (also used by pipeline.serve)."""
     import os
 
     os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
@@ -151,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     problem = _check_args(args)
     if problem:
         return fail(problem)
+    from pipeline.threads import apply_torch_threads
+
+    apply_torch_threads(args.torch_threads)  # first: before NumPy's BLAS or torch are loaded
     from pipeline.models.registry import ModelLoadError
     from pipeline.query.errors import QueryError
     from pipeline.store import StoreError
@@ -176,7 +182,7 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
 
-    _quiet_model_loading()
+    quiet_model_loading()
     settings_changes = {"prompt_weight": args.prompt_weight}
     retriever = Retriever.open(
         args.store,
