@@ -182,7 +182,7 @@ def referenced_files(path: str | os.PathLike, fmt: str) -> list[str]:
     base = path.parent
     refs: list[str] = []
     if fmt == "obj":
-        for mtl in _obj_mtllibs(path):
+        for mtl in obj_mtllibs(path):
             if not _is_regular(base / mtl):
                 raise DiscoveryError(f"missing material file {mtl!r} referenced by {path.name}")
             refs.append(mtl)
@@ -193,7 +193,7 @@ def referenced_files(path: str | os.PathLike, fmt: str) -> list[str]:
                     raise DiscoveryError(f"missing texture {tex!r} referenced by {mtl}")
                 refs.append(Path(rel).as_posix())
     elif fmt == "ply":
-        for tex in _ply_textures(path):
+        for tex in ply_textures(path):
             if not _is_regular(base / tex):
                 raise DiscoveryError(f"missing texture {tex!r} referenced by {path.name}")
             refs.append(tex)
@@ -212,7 +212,7 @@ def referenced_files(path: str | os.PathLike, fmt: str) -> list[str]:
     return list(dict.fromkeys(refs))
 
 
-def _obj_mtllibs(path: Path) -> list[str]:
+def obj_mtllibs(path: Path) -> list[str]:
     libs: list[str] = []
     with open_regular(path) as fh:
         for raw in fh:
@@ -236,7 +236,7 @@ def _mtl_textures(mtl: Path) -> list[str]:
     return out
 
 
-def _ply_textures(path: Path) -> list[str]:
+def ply_textures(path: Path) -> list[str]:
     out = []
     with open_regular(path) as fh:
         for _ in range(200):

@@ -6,9 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-
-class MeshError(ValueError):
-    """A mesh that cannot be used: empty, zero-area, non-finite, too large, unreadable."""
+from pipeline.mesh.errors import MeshError  # noqa: F401  (re-exported: callers catch it here)
 
 
 @dataclass

@@ -19,13 +19,13 @@ EMBEDDED = "<embedded image>"
 
 def declared_textures(path: str, fmt: str) -> list[str]:
     """Colour textures ``path`` references: file paths relative to its folder, or ``EMBEDDED`` entries."""
-    from pipeline.mesh.discover import _obj_mtllibs, _ply_textures, open_regular
+    from pipeline.mesh.discover import obj_mtllibs, open_regular, ply_textures
 
     base = Path(path).parent
     out: list[str] = []
     try:
         if fmt == "obj":
-            for mtl in _obj_mtllibs(Path(path)):
+            for mtl in obj_mtllibs(Path(path)):
                 mtl_path = base / mtl
                 if not mtl_path.is_file():
                     continue  # discovery reports missing material files
@@ -36,7 +36,7 @@ def declared_textures(path: str, fmt: str) -> list[str]:
                             tex = m.group(1).split()[-1]
                             out.append(os.path.relpath(mtl_path.parent / tex, base))
         elif fmt == "ply":
-            out = _ply_textures(Path(path))
+            out = ply_textures(Path(path))
         elif fmt in ("gltf", "glb"):
             doc = _gltf_json(path, fmt)
             for img in doc.get("images", []):
@@ -65,7 +65,7 @@ def check_textures(path: str, textures: list[str], max_pixels: int | None) -> No
     from PIL import Image
 
     from pipeline.mesh.discover import open_regular
-    from pipeline.mesh.load import MeshError
+    from pipeline.mesh.errors import MeshError
 
     base = Path(path).parent
     for rel in textures:

@@ -154,7 +154,7 @@ def store_version(root) -> object:
     log = Path(root) / LOG_DIR
     try:
         seqs = [int(name[:-5]) for name in os.listdir(log) if name.endswith(".json") and name[:-5].isdigit()]
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # no store yet, or not a store: Store.open says which
         return None
     return max(seqs, default=None)
 
