@@ -12,7 +12,6 @@ Defaults (``docs/cli.md``):
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 
@@ -32,19 +31,10 @@ def default_query_threads() -> int:
     return max(1, min(4, cpu_count() // 2))
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def add_torch_threads_arg(p, default_help: str) -> None:
     """``--torch-threads N`` (default ``None``: the command's documented default)."""
+    from pipeline.cli_common import positive_int
+
     p.add_argument(
         "--torch-threads",
         type=positive_int,

@@ -9,8 +9,9 @@ import sys
 import pytest
 from conftest import REPO
 
+from pipeline.cli_common import positive_int
 from pipeline.serve.cli import build_parser, check_args, is_loopback
-from pipeline.threads import default_query_threads, positive_int
+from pipeline.threads import default_query_threads
 
 
 def run_py(code: str) -> subprocess.CompletedProcess:

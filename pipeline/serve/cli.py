@@ -12,14 +12,14 @@ import ipaddress
 import os
 import sys
 
-from pipeline.cli_common import fail
-from pipeline.threads import add_torch_threads_arg, positive_int
+from pipeline.cli_common import OneLineParser, fail, float_range, int_range, positive_float, positive_int
+from pipeline.threads import add_torch_threads_arg
 
 TOKEN_ENV = "OSCAR_TOKEN"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.serve",
         description="Serve CAD-model queries of an onboarded store over HTTP (JSON API, /docs, a web page).",
     )
@@ -28,7 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
     net.add_argument(
         "--host", default="127.0.0.1", help="address to bind (default: 127.0.0.1, loopback only)"
     )
-    net.add_argument("--port", type=int, default=8000, help="TCP port (default: 8000; 0 picks a free one)")
+    net.add_argument(
+        "--port", type=int_range(0, 65535), default=8000, help="TCP port (default: 8000; 0 picks a free one)"
+    )
     net.add_argument(
         "--token",
         default=None,
@@ -61,18 +63,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-pending", type=positive_int, default=64, help="requests waiting or running; more get 503"
     )
     lim.add_argument(
-        "--max-body-mb", type=float, default=20.0, help="largest request body in MiB (default 20)"
+        "--max-body-mb", type=positive_float, default=20.0, help="largest request body in MiB (default 20)"
     )
     lim.add_argument(
         "--max-pixels", type=positive_int, default=40_000_000, help="largest image in pixels (default 40M)"
     )
     lim.add_argument(
-        "--timeout", type=float, default=60.0, help="seconds a query may take before 504 (default 60)"
+        "--timeout",
+        type=positive_float,
+        default=60.0,
+        help="seconds a query may take before 504 (default 60)",
     )
     lim.add_argument("--max-batch", type=positive_int, default=32, help="queries per /query/batch request")
     lim.add_argument(
         "--reload-interval",
-        type=float,
+        type=float_range(0.0),
         default=1.0,
         help="seconds between checks for new store commits (0: never reload; default 1)",
     )
