@@ -462,6 +462,12 @@ def run_onboarding(
             "stage_seconds_json": json.dumps(summary.seconds),
             "status": summary.status,
         }
-        store.commit({"runs": pa.Table.from_pylist([row], schema=schemas.RUNS)}, run_id)
-        store.close()
+        try:
+            if summary.status == "ok":
+                from pipeline.compact import auto_compact
+
+                auto_compact(store, run_id)  # tables whose small files piled up; the run's row still last
+            store.commit({"runs": pa.Table.from_pylist([row], schema=schemas.RUNS)}, run_id)
+        finally:
+            store.close()
     return summary
