@@ -49,14 +49,16 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
     return {"files_before": before, "files_after": len(store.files(dataset)), "rows": rows, "dropped": dropped}
 
 
-def vacuum_dataset(store: Store, dataset: str, retention_hours: float) -> int:
-    """Delete files the log removed more than ``retention_hours`` ago; return how many."""
+def vacuum_dataset(store: Store, dataset: str, retention_hours: float, orphans: bool = False) -> int:
+    """Delete files the log removed more than ``retention_hours`` ago (with ``orphans``, also files no
+    commit names that are that old: left by killed writers); return how many."""
     store.check_files(dataset)  # never act on a log whose files do not check out
     dt = store.delta(dataset)
     gone = dt.vacuum(
         retention_hours=int(retention_hours),
         dry_run=False,
         enforce_retention_duration=False,
+        full=orphans,
     )
     return len(gone)
 
@@ -88,6 +90,12 @@ def main(argv: list[str] | None = None) -> int:
         "readers that opened the store earlier than this may fail afterwards",
     )
     p.add_argument("--no-vacuum", action="store_true", help="compact only; delete no files")
+    p.add_argument(
+        "--remove-orphans",
+        action="store_true",
+        help="also delete data files no commit names (left by killed writers) older than the retention; "
+        "run `python -m pipeline.fsck STORE` first: a lost log entry makes committed files look orphaned",
+    )
     args = p.parse_args(argv)
     if not args.retention_hours >= 0:
         return fail("--retention-hours must be >= 0")
@@ -98,7 +106,9 @@ def main(argv: list[str] | None = None) -> int:
         with Store.open(args.store, writable=True) as store:
             for dataset in store.all_datasets():
                 r = compact_dataset(store, dataset, run_id)
-                vac = 0 if args.no_vacuum else vacuum_dataset(store, dataset, args.retention_hours)
+                vac = 0 if args.no_vacuum else vacuum_dataset(
+                    store, dataset, args.retention_hours, args.remove_orphans
+                )
                 print(
                     f"{dataset}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows "
                     f"({r['dropped']} superseded dropped), {vac} old files vacuumed"
