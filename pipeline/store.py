@@ -270,8 +270,9 @@ class Store:
                 )
 
     # ----------------------------------------------------------------- reading
-    def dataset(self, dataset: str) -> ds.Dataset | None:
-        """A pyarrow dataset over the pinned snapshot (``None`` when absent or empty)."""
+    def dataset(self, dataset: str, schema: pa.Schema | None = None) -> ds.Dataset | None:
+        """A pyarrow dataset over the pinned snapshot (``None`` when absent or empty), read with the
+        dataset's explicit schema or ``schema``."""
         dt = self.delta(dataset)
         if dt is None:
             return None
@@ -279,7 +280,7 @@ class Store:
         if not self.files(dataset):
             return None
         try:
-            return dt.to_pyarrow_dataset(schema=self.schema(dataset))
+            return dt.to_pyarrow_dataset(schema=schema or self.schema(dataset))
         except Exception as exc:  # noqa: BLE001
             raise corrupt(self.root, f"table {self.path_of(dataset)}: {_first_line(exc)}") from None
 
