@@ -77,6 +77,22 @@ def expected_schema(dataset: str, dim: int | None) -> pa.Schema | None:
     return schemas.embedding_schema(dim) if dim else None
 
 
+def delta_schema(schema: pa.Schema) -> pa.Schema:
+    """``schema`` with fixed-size lists as plain lists: how Delta (and Spark, polars) type an array.
+    Readers of this project cast them back to the fixed widths of :func:`expected_schema`."""
+
+    def plain(t: pa.DataType) -> pa.DataType:
+        if pa.types.is_fixed_size_list(t):
+            return pa.list_(plain(t.value_type))
+        if pa.types.is_list(t):
+            return pa.list_(plain(t.value_type))
+        if pa.types.is_struct(t):
+            return pa.struct([f.with_type(plain(f.type)) for f in t])
+        return t
+
+    return pa.schema([f.with_type(plain(f.type)) for f in schema], metadata=schema.metadata)
+
+
 def _order(dataset: str) -> tuple[int, str]:
     t = table_of(dataset)
     return (TABLE_ORDER.index(t) if t in TABLE_ORDER else len(TABLE_ORDER), dataset)
@@ -206,7 +222,10 @@ class Store:
         try:
             dt = DeltaTable(str(path))
         except Exception as exc:  # noqa: BLE001 - deltalake raises several error types
-            raise corrupt(self.root, f"{log}: cannot read the Delta log ({_first_line(exc)})") from None
+            raise corrupt(self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})") from None
+        gap = _bad_log_file(log, parse=False)  # delta-rs reads past a missing commit file silently
+        if gap != log:
+            raise corrupt(self.root, f"{gap}: missing Delta log entry (table {dataset})")
         if self.as_of is not None:
             try:
                 dt.load_as_version(self.as_of)
@@ -335,6 +354,7 @@ class Store:
             dim = table.schema.field("embedding").type.list_size
         schema = expected_schema(dataset, dim)
         table = schemas.conform(table, schema)
+        table = table.cast(delta_schema(schema))  # Delta arrays are variable-length lists
         dt = self.delta(dataset)
         target = dt if dt is not None else str(self.path_of(dataset))
         extra = {}
@@ -400,6 +420,28 @@ def check_format(root: Path) -> None:
         )
     if version != FORMAT_VERSION:
         raise StoreError(f"{root} has store format {version!r}; this version reads {FORMAT_VERSION}")
+
+
+def _bad_log_file(log: Path, parse: bool = True) -> Path:
+    """The first missing (or, with ``parse``, unreadable) commit file of a Delta log after its latest
+    checkpoint; the log folder itself when none stands out."""
+    versions = sorted(int(p.name[:20]) for p in log.glob("*.json") if p.name[:20].isdigit())
+    cps = [int(p.name[:20]) for p in log.glob("*.checkpoint*.parquet") if p.name[:20].isdigit()]
+    start = max(cps) + 1 if cps else 0
+    present = set(versions)
+    for v in range(start, (versions[-1] + 1) if versions else 1):
+        path = log / f"{v:020d}.json"
+        if v not in present:
+            return path
+        if not parse:
+            continue
+        try:
+            lines = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+        except (OSError, ValueError):
+            return path
+        if not lines:
+            return path
+    return log
 
 
 def _writer_properties():

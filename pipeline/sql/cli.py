@@ -109,7 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.db import connect
     from pipeline.sql.session import Printer, run_audits, run_sql, set_variables
 
-    con = connect(store)
+    try:
+        con = connect(store)
+    except StoreError as exc:
+        return fail(str(exc))
     printer = Printer(args.format, args.max_width)
     try:
         set_variables(con, _variables(args.set))
