@@ -46,7 +46,12 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
             dt.optimize.compact(writer_properties=_props())
         rows = store.read(dataset, columns=["run_id"]).num_rows
     store._tables.pop(dataset, None)  # reload at the new version
-    return {"files_before": before, "files_after": len(store.files(dataset)), "rows": rows, "dropped": dropped}
+    return {
+        "files_before": before,
+        "files_after": len(store.files(dataset)),
+        "rows": rows,
+        "dropped": dropped,
+    }
 
 
 def vacuum_dataset(store: Store, dataset: str, retention_hours: float, orphans: bool = False) -> int:
@@ -106,8 +111,10 @@ def main(argv: list[str] | None = None) -> int:
         with Store.open(args.store, writable=True) as store:
             for dataset in store.all_datasets():
                 r = compact_dataset(store, dataset, run_id)
-                vac = 0 if args.no_vacuum else vacuum_dataset(
-                    store, dataset, args.retention_hours, args.remove_orphans
+                vac = (
+                    0
+                    if args.no_vacuum
+                    else vacuum_dataset(store, dataset, args.retention_hours, args.remove_orphans)
                 )
                 print(
                     f"{dataset}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows "

@@ -66,7 +66,9 @@ def check_files(store: Store, dataset: str, report: Report) -> None:
             report.bad(f"{path} is missing (table {dataset}): restore it from a backup")
             continue
         if path.stat().st_size != size:
-            report.bad(f"{path} is {path.stat().st_size} bytes, the log says {size} (table {dataset}): restore it")
+            report.bad(
+                f"{path} is {path.stat().st_size} bytes, the log says {size} (table {dataset}): restore it"
+            )
             continue
         try:
             got = pq.read_schema(path)

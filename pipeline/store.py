@@ -100,7 +100,9 @@ def _order(dataset: str) -> tuple[int, str]:
 
 def corrupt(store_root, what: str) -> StoreCorruptError:
     """The one-line error for a damaged store (``what`` names the file)."""
-    return StoreCorruptError(f"{what}; run `python -m pipeline.fsck {store_root}` for a full check and repair")
+    return StoreCorruptError(
+        f"{what}; run `python -m pipeline.fsck {store_root}` for a full check and repair"
+    )
 
 
 class Store:
@@ -136,7 +138,9 @@ class Store:
             if not create:
                 if root.exists() and any(root.iterdir()):
                     raise StoreError(f"{root} is not an OSCAR store (no {STORE_MARKER})")
-                raise StoreError(f"no store at {root}: run `python -m pipeline.onboard LIBRARY --store {root}`")
+                raise StoreError(
+                    f"no store at {root}: run `python -m pipeline.onboard LIBRARY --store {root}`"
+                )
             root.mkdir(parents=True, exist_ok=True)
             if any(p.name != LOCK_FILE for p in root.iterdir()):
                 raise StoreError(f"{root} exists, is not empty and is not an OSCAR store")
@@ -222,7 +226,9 @@ class Store:
         try:
             dt = DeltaTable(str(path))
         except Exception as exc:  # noqa: BLE001 - deltalake raises several error types
-            raise corrupt(self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})") from None
+            raise corrupt(
+                self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})"
+            ) from None
         gap = _bad_log_file(log, parse=False)  # delta-rs reads past a missing commit file silently
         if gap != log:
             raise corrupt(self.root, f"{gap}: missing Delta log entry (table {dataset})")

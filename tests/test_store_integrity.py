@@ -49,7 +49,9 @@ def test_each_table_opens_with_deltalake_and_polars(built):
         (dataset,) = s.datasets(table)
         df = pl.scan_delta(str(store / dataset)).collect()
         assert df.height == 16 and set(df["view_index"]) == set(range(8))
-        assert df["embedding"].list.len().unique().to_list() == [s.read(dataset).column("embedding").type.list_size]
+        assert df["embedding"].list.len().unique().to_list() == [
+            s.read(dataset).column("embedding").type.list_size
+        ]
     import duckdb
 
     con = duckdb.connect()
