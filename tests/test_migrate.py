@@ -5,7 +5,6 @@ from __future__ import annotations
 import shutil
 
 import pyarrow.compute as pc
-
 from conftest import SAMPLE_LIBRARY
 from onboard_helpers import content, onboard
 
