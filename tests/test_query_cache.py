@@ -112,7 +112,12 @@ def test_cache_follows_the_delta_log(tmp_path):
     first = sorted(seg_dir.glob("seg-*.arrow"))
     first_mtime = first[0].stat().st_mtime_ns
 
-    assert _same(st)["caption"] == {"read_files": 0, "new_segments": 0, "rewritten_segments": 0, "renumbered": 0}
+    assert _same(st)["caption"] == {
+        "read_files": 0,
+        "new_segments": 0,
+        "rewritten_segments": 0,
+        "renumbered": 0,
+    }
 
     _commit(st, "r2", [6], [6], seed=2)  # one mesh added: only its file is read, old segment untouched
     stats = _same(st)["caption"]

@@ -49,11 +49,13 @@ class SegmentCache:
         _atomic_bytes(self.dir / MANIFEST, json.dumps(man).encode())
 
     # ------------------------------------------------------------------ open
-    def load(self, files: list[tuple[str, Path]], schema: pa.Schema, fp: str, active_ids: pa.Array) -> pa.Table:
+    def load(
+        self, files: list[tuple[str, Path]], schema: pa.Schema, fp: str, active_ids: pa.Array
+    ) -> pa.Table:
         """The cached table for the Delta ``files`` ((name, path)) numbered against ``active_ids`` (sorted)."""
         self.dir.mkdir(parents=True, exist_ok=True)
         man = self._manifest()
-        if set(man["excluded"]) & set(active_ids.to_pylist()):
+        if man["excluded"] and pc.any(pc.is_in(active_ids, value_set=pa.array(man["excluded"]))).as_py():
             man = {"segments": [], "excluded": [], "next": man["next"]}  # a mesh came back: rebuild
         current = {name: path for name, path in files}
         kept = [s for s in man["segments"] if set(s["sources"]) <= current.keys()]
@@ -73,7 +75,7 @@ class SegmentCache:
                 self.stats["new_segments"] += 1
             else:  # files without rows at this fingerprint are covered all the same
                 kept.append({"file": None, "sources": added, "sig": None})
-        sig = hashlib.sha1(b"\0".join(x.encode() for x in active_ids.to_pylist())).hexdigest()
+        sig = _signature(active_ids)
         parts = []
         for s in kept:
             if s["file"] is None:
@@ -169,7 +171,9 @@ class SegmentCache:
         if beaten:
             keep = [
                 (m, v) not in beaten
-                for m, v in zip(new.column("mesh_id").to_pylist(), new.column("view_index").to_pylist(), strict=True)
+                for m, v in zip(
+                    new.column("mesh_id").to_pylist(), new.column("view_index").to_pylist(), strict=True
+                )
             ]
             new = new.filter(pa.array(keep))
         return new
@@ -216,6 +220,16 @@ class SegmentCache:
 
     def _read(self, name: str) -> pa.Table:
         return _read_ipc(self.dir / name)
+
+
+def _signature(ids: pa.Array) -> str:
+    """Hash of a string array's contents (its offsets and bytes), without Python strings."""
+    ids = pa.array(ids.to_pylist(), pa.string()) if ids.offset else ids  # buffers start at the array
+    h = hashlib.sha1(str(len(ids)).encode())
+    for buf in ids.buffers()[1:]:
+        if buf is not None:
+            h.update(memoryview(buf))
+    return h.hexdigest()
 
 
 def _decoded_ids(seg: pa.Table) -> pa.Array:

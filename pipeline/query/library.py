@@ -143,7 +143,9 @@ class StoreTables:
             return [c for c in seg.column_names if c == "embedding" or (c[0] == "e" and c[1:].isdigit())]
 
         cache = SegmentCache(directory, vector_columns, layout)
-        table = cache.load(files, self.store.schema(dataset), fp, self.meshes.column("mesh_id").combine_chunks())
+        table = cache.load(
+            files, self.store.schema(dataset), fp, self.meshes.column("mesh_id").combine_chunks()
+        )
         self.cache_stats = getattr(self, "cache_stats", {})
         self.cache_stats[kind] = cache.stats
         return table
