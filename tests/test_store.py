@@ -146,3 +146,22 @@ def test_time_travel_by_runs_version_and_time(tmp_path):
     assert Store.open(tmp_path / "st", as_of=at).read("captions").num_rows == 2
     with pytest.raises(StoreError, match="no runs version 7"):
         Store.open(tmp_path / "st", as_of=7)
+
+
+def test_sql_as_of(tmp_path, capsys):
+    import json
+
+    from pipeline.sql.cli import main as sql_main
+
+    s = Store.open(tmp_path / "st", create=True)
+    for i in range(2):
+        runs = pa.Table.from_pylist([{"run_id": f"r{i}", "status": "ok"}], schema=schemas.RUNS)
+        s.commit({"captions": _captions([f"m{i}"], f"r{i}", "x"), "runs": runs}, f"r{i}")
+    s.close()
+    sql = ["-c", "SELECT count(*) AS n FROM captions_all", "--format", "json"]
+    assert sql_main([str(tmp_path / "st"), "--as-of", "0", *sql]) == 0
+    assert json.loads(capsys.readouterr().out) == [{"n": 1}]
+    assert sql_main([str(tmp_path / "st"), *sql]) == 0
+    assert json.loads(capsys.readouterr().out) == [{"n": 2}]
+    assert sql_main([str(tmp_path / "st"), "--as-of", "yesterday", *sql]) == 2
+    assert "--as-of expects" in capsys.readouterr().err
