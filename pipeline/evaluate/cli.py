@@ -303,8 +303,8 @@ def _style_stores(args, out: Path, models: dict | None = None) -> dict[str, str]
     if args.onboard_styles:
         if not args.library:
             raise ValueError("--onboard-styles needs --library DIR (the library to onboard per style)")
-        from pipeline.config import OnboardConfig
-        from pipeline.executor import run_onboarding
+        from pipeline.onboard.config import OnboardConfig
+        from pipeline.onboard.run import run_onboarding
 
         root = Path(args.styles_dir or out / "stores")
         reuse = _onboarded_from(args.store) == {str(Path(args.library).resolve())}

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from pipeline.config import RenderConfig
+from pipeline.mesh.settings import RenderConfig
 
 #: Directions of Cap3D's 8 fixed camera positions (x, y, z as multiples of distance * ratio).
 CAP3D_DIRECTIONS = [

@@ -12,20 +12,19 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
-from pipeline.config import OnboardConfig
-from pipeline.stages.base import error_row
-from pipeline.stages.render import RENDER_OUT
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages import Step
+from pipeline.onboard.stages.base import error_row
+from pipeline.onboard.stages.render import RENDER_OUT
 
 
 class RenderSetupError(RuntimeError):
     """A render worker could not start (no EGL / OpenGL driver)."""
 
 
-def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
-    from pipeline.stages.render import RenderStage
-
-    stage = RenderStage(cfg, run_id)
-    stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
+def _worker_main(conn, cfg: OnboardConfig, run_id: str, step: Step) -> None:
+    stage = step.stage.runner(cfg, run_id, step)
+    stage.warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
     conn.send("ready")
     while True:
         try:
@@ -38,9 +37,9 @@ def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx, cfg: OnboardConfig, run_id: str):
+    def __init__(self, ctx, cfg: OnboardConfig, run_id: str, step: Step):
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id), daemon=True)
+        self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id, step), daemon=True)
         self.proc.start()
         child.close()
         self.item: dict | None = None
@@ -54,19 +53,18 @@ class _Worker:
 
 
 class RenderPool:
-    """Renders meshes in ``n`` spawned processes; yields ``(item, rows)`` in completion order."""
+    """Renders meshes in ``n`` spawned processes; yields ``(item, rows)`` in completion order.
 
-    def __init__(self, cfg: OnboardConfig, run_id: str, n: int, timeout_s: float):
+    ``step`` is the run's rendering step (by default resolved from ``cfg``)."""
+
+    def __init__(self, cfg: OnboardConfig, run_id: str, n: int, timeout_s: float, step: Step | None = None):
         self.cfg, self.run_id, self.timeout_s = cfg, run_id, timeout_s
+        self.step = step or cfg.resolve().source
         self._ctx = mp.get_context("spawn")
-        self._workers = [_Worker(self._ctx, cfg, run_id) for _ in range(max(1, n))]
+        self._workers = [_Worker(self._ctx, cfg, run_id, self.step) for _ in range(max(1, n))]
 
     def _fail(self, item: dict, reason: str, kind: str) -> list[dict]:
-        base = {
-            "mesh_id": item["mesh_id"],
-            "fingerprint": self.cfg.fingerprints()["render"],
-            "run_id": self.run_id,
-        }
+        base = {"mesh_id": item["mesh_id"], "fingerprint": self.step.fingerprint, "run_id": self.run_id}
         return [error_row(RENDER_OUT, base, reason, kind)]
 
     def map(self, items: Iterable[dict]) -> Iterator[tuple[dict, list[dict]]]:
@@ -120,7 +118,7 @@ class RenderPool:
 
     def _replace(self, i: int) -> None:
         self._workers[i].kill()
-        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id)
+        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id, self.step)
 
     def close(self) -> None:
         for w in self._workers:

@@ -10,7 +10,7 @@ from pipeline.cli_common import add_model_args, fail, model_overrides
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.config import STAGES
+    from pipeline.onboard.stages import STAGE_NAMES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
     p = argparse.ArgumentParser(
@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--force",
         action="append",
         default=[],
-        choices=list(STAGES),
+        choices=list(STAGE_NAMES),
         help="redo STAGE (and what depends on it) for every mesh; repeatable",
     )
     p.add_argument(
@@ -86,8 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
-    from pipeline.config import OnboardConfig, RenderConfig
-    from pipeline.ray_options import RayOptions
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.engines.ray_options import RayOptions
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
@@ -121,11 +122,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return fail(str(exc))
 
-    from pipeline.executor import run_onboarding
     from pipeline.models.registry import ModelLoadError
-    from pipeline.ray_engine import RayEngineError
+    from pipeline.onboard.engines.ray import RayEngineError
+    from pipeline.onboard.engines.render_pool import RenderSetupError
+    from pipeline.onboard.run import run_onboarding
     from pipeline.store import StoreError
-    from pipeline.workers import RenderSetupError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)

@@ -1,0 +1,100 @@
+"""Onboarding configuration (:class:`OnboardConfig`) and its resolution for one run (:class:`RunSpec`:
+the profile and every step's fingerprint and table, computed once and passed down)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from pipeline.mesh.settings import RenderConfig
+from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.stages import STAGE_NAMES, Step, resolve_steps
+from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
+
+
+@dataclass(frozen=True)
+class OnboardConfig:
+    """Everything that decides what onboarding writes, plus how it runs."""
+
+    profile: str = "offline"
+    model_overrides: dict[str, str] = field(default_factory=dict)
+    prompt_style: str = DEFAULT_PROMPT_STYLE
+    render: RenderConfig = field(default_factory=RenderConfig)
+    max_faces: int = 2_000_000
+    render_timeout_s: float = 120.0
+    workers: int = 2
+    batch_size: int = 16
+    retry_failed: bool = False
+    force: tuple[str, ...] = ()
+    engine: str = "local"
+    model_options: dict[str, dict] = field(default_factory=dict)  # per-role extra adapter options
+    ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
+
+    def __post_init__(self) -> None:
+        if self.prompt_style not in PROMPT_STYLES:
+            raise ValueError(
+                f"unknown --prompt-style {self.prompt_style!r}; choose from {', '.join(PROMPT_STYLES)}"
+            )
+        bad = [s for s in self.force if s not in STAGE_NAMES]
+        if bad:
+            raise ValueError(f"unknown --force stage {bad[0]!r}; stages: {', '.join(STAGE_NAMES)}")
+
+    def get_profile(self) -> Profile:
+        return get_profile(self.profile, self.model_overrides)
+
+    @property
+    def prompt(self) -> str:
+        return PROMPT_STYLES[self.prompt_style]
+
+    def resolve(self) -> RunSpec:
+        """The profile and the steps of a run with this config (raises ValueError for a bad override)."""
+        profile = self.get_profile()
+        return RunSpec(self, profile, resolve_steps(self, profile))
+
+    def fingerprints(self) -> dict[str, str]:
+        """Fingerprint of each step's config and model, chained through its inputs."""
+        return self.resolve().fingerprints
+
+    def describe(self) -> dict:
+        """JSON-ready description stored in the ``runs`` table."""
+        return self.resolve().describe()
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """An :class:`OnboardConfig` resolved once per run: its profile and its steps (one per stage and
+    model role, in stage order), which the planner, the engines and the stages all take from here."""
+
+    cfg: OnboardConfig
+    profile: Profile
+    steps: tuple[Step, ...]
+
+    @property
+    def fingerprints(self) -> dict[str, str]:
+        return {s.key: s.fingerprint for s in self.steps}
+
+    def step(self, key: str) -> Step:
+        return next(s for s in self.steps if s.key == key)
+
+    @property
+    def source(self) -> Step:
+        """The first step (rendering): the one that reads the mesh files."""
+        return self.steps[0]
+
+    @property
+    def downstream(self) -> tuple[Step, ...]:
+        """Every step after the first, in order."""
+        return self.steps[1:]
+
+    def describe(self) -> dict:
+        """JSON-ready description stored in the ``runs`` table."""
+        cfg = self.cfg
+        return {
+            "profile": cfg.profile,
+            "models": {r: (s.key() if s else None) for r, s in self.profile.roles().items()},
+            "prompt_style": cfg.prompt_style,
+            "prompt": cfg.prompt,
+            "render": asdict(cfg.render),
+            "max_faces": cfg.max_faces,
+            "render_timeout_s": cfg.render_timeout_s,
+            "fingerprints": self.fingerprints,
+        }
