@@ -207,7 +207,7 @@ def run_layout(con, sliced: bool, q, tau, k, width: int):
     from pipeline.query.stage1 import query_params
 
     if sliced:
-        params = {**query_params(q, width), "threshold": tau, "fallback_k": k}
+        params = {**query_params(q, width), "threshold": tau, "fallback_k": k, "fallback_unit": "meshes"}
         out = con.execute(load_sql("stage1_text_filter"), params).fetchnumpy()
     else:
         out = con.execute(
@@ -277,7 +277,7 @@ def bench_stage1(
         f = TextFilter(captions, threads=th)
         for case, (tv, k) in cases.items():
             ref_idx, ref_s, _ = numpy_stage1(x, n_mesh, q, tv, k)
-            wall, cpu, r = timed(lambda f=f, tv=tv, k=k: f.run(q, tv, k), repeats)
+            wall, cpu, r = timed(lambda f=f, tv=tv, k=k: f.run(q, tv, k, "meshes"), repeats)
             same, diff = compare(r.mesh_idx, r.scores, ref_idx, ref_s)
             rows.append(
                 {

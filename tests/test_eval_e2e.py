@@ -71,10 +71,10 @@ def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
     doc = json.loads((out / "metrics.json").read_text())
     assert doc["n_queries"] == doc["n_evaluated"] == 6
     assert doc["unresolved"] == [] and doc["failed"] == []
+    assert doc["config"]["metric_set"] == "paper" and doc["base"]["metric_set"] == "paper"
     base = doc["base"]["instance"]
-    assert base["n"] == 6
-    assert base["top5"] == 1.0  # three models: the expected one is always within the candidates
-    assert 0.0 <= base["mAP@1"] <= base["mAP@3"] <= 1.0
+    assert base["n"] == 6 and base["n_mi3dor"] == 6  # three models: the expected one is always ranked
+    assert 0.0 <= base["mAP@1"] <= 1.0 and 0.0 <= base["NN"] <= 100.0 and "top5" not in base
     assert doc["base"]["class"]["n"] == 6  # synthetic queries carry class labels
     assert [r["setting"]["threshold"] for r in doc["sweeps"]["tau"]] == [0.3, 0.6, 0.9]
     assert {r["setting"]["mode"] for r in doc["sweeps"]["mode"]} == {"two-stage", "text-only", "image-only"}
@@ -90,7 +90,19 @@ def test_synthetic_evaluation_report(tiny_store, tmp_path, capsys):
         assert (out / name).is_file(), name
     for g in doc["gallery"]:
         assert (out / g["file"]).is_file()
-    assert "instance: mAP@1" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "instance: mAP@1" in printed and "metric set: paper" in printed
+    assert "Metric set `paper`" in (out / "report.md").read_text()
+
+    # the textbook set and the mesh-counted fallback on the same queries, base setting only
+    std = tmp_path / "standard"
+    args = ["--store", str(store), "--queries", str(queries / "queries.jsonl"), "--out", str(std)]
+    rc = main(args + ["--metrics", "standard", "--fallback-unit", "meshes", "--no-sweeps", "--no-progress"])
+    assert rc == 0, capsys.readouterr().err
+    sdoc = json.loads((std / "metrics.json").read_text())
+    assert sdoc["config"]["metric_set"] == "standard" and sdoc["base"]["setting"]["fallback_unit"] == "meshes"
+    assert sdoc["base"]["instance"]["top5"] == 1.0
+    assert "Metric set `standard`" in (std / "report.md").read_text()
 
 
 def test_missing_store_is_one_line(tmp_path, capsys):

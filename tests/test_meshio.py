@@ -85,7 +85,12 @@ def test_views_layouts_and_framing():
     oscar = view_directions(RenderConfig())
     assert [round(e) for _, e, _ in oscar] == [-15] * 4 + [15] * 4
     assert sorted(round(a) for a, _, _ in oscar) == [0, 45, 90, 135, 180, 225, 270, 315]
-    assert len(view_directions(RenderConfig(cameras="cap3d"))) == 8
+    cap3d = view_directions(RenderConfig(cameras="cap3d"))
+    assert len(cap3d) == 8
+    # the reference's Blender script: views 4 and 5 keep view 3's elevation factor 0.7 (26.3 deg, not 8)
+    elev = [round(e, 2) for _, e, _ in cap3d]
+    assert elev == [8.05, 8.05, 24.09, 32.05, 26.33, 26.33, -24.09, -32.05]
+    assert abs(cap3d[4][1] - np.degrees(np.arctan(0.7 / np.sqrt(2)))) < 1e-9
     pts = np.random.default_rng(0).normal(size=(500, 3)) * [1, 0.3, 0.2]
     pts /= np.linalg.norm(pts, axis=1).max()
     for _, _, d in oscar:

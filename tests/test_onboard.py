@@ -166,9 +166,24 @@ def test_cap3d_camera_layout(tmp_path, offline_models):
     store = tmp_path / "store"
     from pipeline.mesh.settings import RenderConfig
 
-    onboard(lib, store, offline_models, render=RenderConfig(cameras="cap3d", resolution=128))
-    views = Store.open(store).read("views")
-    assert views.num_rows == 8
+    cfg = RenderConfig(cameras="cap3d", resolution=128, extra_bg_view=True)
+    assert cfg.fingerprint() != RenderConfig(cameras="cap3d", resolution=128).fingerprint()
+    assert RenderConfig().fingerprint() == RenderConfig(extra_bg_view=False).fingerprint()
+    onboard(lib, store, offline_models, render=cfg)
+    s = Store.open(store)
+    views = s.read("views").sort_by("view_index")
+    assert views.num_rows == 9  # the 8 Cap3D views + the extra background view
     assert pc.max(views.column("width")).as_py() == 128
     elev = views.column("elevation_deg").to_pylist()
     assert min(elev) < -20 and max(elev) > 20  # cap3d has views below and above the object
+    rows = views.to_pylist()
+    assert rows[8]["camera_pose"] == rows[0]["camera_pose"]  # view 0's camera ...
+    bg = np.asarray(decode_png(rows[8]["image"]))
+    assert bg[0, 0].tolist() == [0, 0, 0] and np.asarray(decode_png(rows[0]["image"]))[0, 0].tolist() == [
+        205,
+        205,
+        205,
+    ]  # ... on black instead of gray
+    assert sorted(s.read("captions").column("view_index").to_pylist()) == list(range(8))  # not captioned
+    (img_ds,) = s.datasets("image_embeddings")
+    assert sorted(s.read(img_ds).column("view_index").to_pylist()) == list(range(9))  # a stage-2 view

@@ -41,7 +41,7 @@ def test_paper_profile_onboarding_with_tiny_models(tmp_path, tiny_paper_models, 
     assert caps.num_rows == 8
     assert set(caps.column("captioner_id").to_pylist()) == {f"llava:{tiny_paper_models['captioner']}"}
     assert all(isinstance(c, str) for c in caps.column("caption").to_pylist())
-    assert "Describe the object" in caps.column("prompt")[0].as_py()  # the "attributes" prompt style
+    assert caps.column("prompt")[0].as_py().startswith("Extract visual attributes of the main object")
 
     (text_ds,) = s.datasets("text_embeddings")
     image_ds = s.datasets("image_embeddings")

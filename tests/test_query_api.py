@@ -55,8 +55,14 @@ def test_to_json_is_complete(retriever):
 def test_rank_reuses_one_embedding(retriever):
     img, mask = red_can_photo()
     emb = retriever.embed(retriever.make_roi(img, "the red can", mask=mask), "the red can")
-    strict = retriever.rank(emb, threshold=1.5, fallback_k=2)
+    strict = retriever.rank(emb, threshold=1.5, fallback_k=2, fallback_unit="meshes")
     assert strict.used_fallback and strict.n_stage1 == 2 and strict.decided_by == "stage2"
+    # the paper's unit (default): the 2 best captions are both the red can's views -> one model
+    by_caption = retriever.rank(emb, threshold=1.5, fallback_k=2)
+    assert by_caption.used_fallback and by_caption.fallback_unit == "captions"
+    assert by_caption.n_stage1 == 1 and by_caption.candidates[0].name == "red_can"
+    with pytest.raises(QueryError, match="fallback unit"):
+        retriever.rank(emb, fallback_unit="views")
     loose = retriever.rank(emb, threshold=-1.0)
     assert not loose.used_fallback and loose.n_stage1 == 4
     text = retriever.rank(emb, mode="text-only", top=2)
@@ -67,6 +73,26 @@ def test_rank_reuses_one_embedding(retriever):
     # a model passing stage 1 alone is decided by stage 1
     only = retriever.rank(emb, threshold=1.5, fallback_k=1)
     assert only.n_stage1 == 1 and only.decided_by == "stage1"
+
+
+def test_view_level_ranking_lists_every_view_by_score(retriever):
+    img, mask = red_can_photo()
+    emb = retriever.embed(retriever.make_roi(img, "the red can", mask=mask), "the red can")
+    for mode in ("two-stage", "image-only", "text-only"):
+        r = retriever.rank(emb, mode=mode, threshold=-1.0, top=100, views=True)
+        vr = r.view_ranking
+        n_items = (
+            retriever.tables.views.num_rows if mode != "text-only" else retriever.tables.captions.num_rows
+        )
+        assert len(vr.mesh_idx) == n_items == len(vr.scores), mode  # every reference view / caption row
+        assert np.all(np.diff(vr.scores) <= 1e-6) or vr.tiebreak is not None, mode
+        assert retriever._mesh_id[vr.mesh_idx[0]] == "id-red_can", mode
+        best = {c.mesh_id: c for c in r.candidates}
+        if mode != "text-only":  # a mesh's score is the max over its views
+            for j in set(vr.mesh_idx.tolist()):
+                top_view = vr.scores[vr.mesh_idx == j].max()
+                assert best[retriever._mesh_id[j]].image_score == pytest.approx(float(top_view), abs=1e-5)
+    assert retriever.rank(emb).view_ranking is None  # only on request
 
 
 def test_prompt_weight_changes_stage1_only_by_the_blend(retriever):

@@ -71,6 +71,44 @@ def test_fallback_top_k_when_nothing_passes(text_filter):
     assert everything.mesh_idx.tolist() == [0, 1, 2, 3] and everything.scores[-1] == pytest.approx(-1.0)
 
 
+def test_fallback_counts_captions_or_meshes(text_filter):
+    # caption scores: 0.9 (m0), 0.5 (m1), 0.5 (m2), 0.3 (m2), 0.1 (m0), -1 (m3)
+    by_caption = text_filter.run(Q, threshold=0.95, fallback_k=3, fallback_unit="captions")
+    assert by_caption.used_fallback and by_caption.mesh_idx.tolist() == [0, 1, 2]
+    two = text_filter.run(Q, threshold=0.95, fallback_k=2, fallback_unit="captions")
+    assert two.mesh_idx.tolist() == [0, 1]  # captions 0.9 (m0) and 0.5 (m1, lower mesh_idx wins the tie)
+    five = text_filter.run(Q, threshold=0.95, fallback_k=5, fallback_unit="captions")
+    assert five.mesh_idx.tolist() == [0, 1, 2]  # 5 captions, 3 distinct meshes
+    np.testing.assert_allclose(five.scores, [0.9, 0.5, 0.5], atol=1e-6)  # a mesh keeps its best caption
+    by_mesh = text_filter.run(Q, threshold=0.95, fallback_k=5, fallback_unit="meshes")
+    assert by_mesh.mesh_idx.tolist() == [0, 1, 2, 3]
+    passing = text_filter.run(Q, threshold=0.45, fallback_k=1, fallback_unit="captions")
+    assert (
+        passing.mesh_idx.tolist() == [0, 1, 2] and not passing.used_fallback
+    )  # unit only matters on fallback
+    with pytest.raises(ValueError, match="fallback unit"):
+        text_filter.run(Q, threshold=0.5, fallback_k=1, fallback_unit="views")
+
+
+@pytest.mark.parametrize("k", [1, 3, 7, 20, 400])
+def test_caption_fallback_matches_numpy_on_random_rows(k):
+    rng = np.random.default_rng(k)
+    vecs = unit(rng.standard_normal((400, 16)))
+    mesh = rng.integers(0, 60, 400)  # uneven caption counts per mesh
+    vecs[::7] = vecs[3]  # tied caption scores across meshes
+    f = TextFilter(captions(list(zip(mesh.tolist(), vecs.tolist(), strict=True))))
+    q = unit(rng.standard_normal(16))
+    r = f.run(q, threshold=None, fallback_k=k, fallback_unit="captions")
+    s = f.run(q, threshold=None, fallback_k=400, fallback_unit="meshes")
+    mesh_score = dict(zip(s.mesh_idx.tolist(), s.scores.tolist(), strict=True))
+    # independent: the k best caption rows by (score desc, mesh_idx), as their distinct meshes
+    cap = (vecs @ q).astype(np.float32)
+    top = np.lexsort((mesh, -cap))[:k]
+    want = sorted(set(mesh[top].tolist()), key=lambda m: (-mesh_score[m], m))
+    assert r.mesh_idx.tolist() == want and r.used_fallback
+    f.close()
+
+
 def test_null_threshold_is_plain_top_k(text_filter):
     r = text_filter.run(Q, threshold=None, fallback_k=1)
     assert r.mesh_idx.tolist() == [0] and r.used_fallback
@@ -87,7 +125,7 @@ def test_sql_matches_numpy_on_random_rows():
     mesh = np.repeat(np.arange(50), 8)
     f = TextFilter(captions(list(zip(mesh.tolist(), vecs.tolist(), strict=True))))
     q = unit(rng.standard_normal(16))
-    r = f.run(q, threshold=None, fallback_k=50)
+    r = f.run(q, threshold=None, fallback_k=50, fallback_unit="meshes")
     ref = (vecs @ q).reshape(50, 8).max(axis=1)
     order = np.lexsort((np.arange(50), -ref))
     assert r.mesh_idx.tolist() == order.tolist()
@@ -97,7 +135,7 @@ def test_sql_matches_numpy_on_random_rows():
 def test_stage1_sql_binds_every_value():
     sql = load_sql("stage1_text_filter")
     assert sql.lstrip().startswith("--")
-    for name in [f"$q{i}" for i in range(8)] + ["$threshold", "$fallback_k"]:
+    for name in [f"$q{i}" for i in range(8)] + ["$threshold", "$fallback_k", "$fallback_unit"]:
         assert name in sql
 
 

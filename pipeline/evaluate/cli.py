@@ -38,7 +38,7 @@ def _words(text: str) -> tuple[str, ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN
-    from pipeline.evaluate.metrics import MAP_NORMALISERS, TIE_POLICIES
+    from pipeline.evaluate.metrics import MAP_NORMALISERS, METRIC_SETS, TIE_POLICIES
     from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE
 
     p = argparse.ArgumentParser(
@@ -83,6 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--classes", metavar="FILE", help="JSON/CSV mesh -> class label map (wins over the pattern)"
     )
     rel.add_argument(
+        "--metrics",
+        default="paper",
+        choices=METRIC_SETS,
+        help="paper: the reference scripts' definitions (mAP@k over library views, hits normaliser; NN, FT, "
+        "ST, F, nDCG, AP, ANMRR as the reference computes them); standard: textbook definitions over the "
+        "ranked meshes (default: %(default)s; docs/evaluation.md)",
+    )
+    rel.add_argument(
         "--ties",
         default="pessimistic",
         choices=TIE_POLICIES,
@@ -92,7 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--map-norm",
         default="min",
         choices=MAP_NORMALISERS,
-        help="AP@k normaliser: min(k,R), R, or hits in the top k (default: %(default)s)",
+        help="AP@k normaliser of --metrics standard: min(k,R), R, or hits in the top k (default: %(default)s; "
+        "the paper set always uses hits)",
     )
     add_model_args(p)
     p.add_argument("--device", help="torch device for the paper profile (default: cuda when available)")
@@ -103,6 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     base.add_argument(
         "--fallback-k", type=int, default=10, help="stage-1 top-k when none passes tau (default: 10)"
+    )
+    base.add_argument(
+        "--fallback-unit",
+        default="captions",
+        choices=["captions", "meshes"],
+        help="what --fallback-k counts: caption rows, kept as their distinct models (paper, default), or models",
     )
     base.add_argument("--roi", default="segm", choices=["segm", "bbox"], help="ROI variant (default: segm)")
     sw = p.add_argument_group("sweeps")
@@ -193,12 +208,12 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     say = print if progress else (lambda *a, **k: None)
     say(f"{len(queries)} queries, {len(library)} library meshes; loading the {args.profile} models")
     engine = Engine.open(args.store, args.profile, overrides, args.device)
-    base = Setting(args.mode, args.tau, args.fallback_k, args.roi)
+    base = Setting(args.mode, args.tau, args.fallback_k, args.roi, args.fallback_unit)
     plan = SweepPlan(base=base)
     for name in ("taus", "top_ks", "modes", "rois"):
         if getattr(args, name):
             setattr(plan, name, getattr(args, name))
-    opts = MetricOptions(args.ties, args.map_norm)
+    opts = MetricOptions(args.ties, args.map_norm, args.metrics)
     run = evaluate(engine, queries, library, plan, opts, sweeps=not args.no_sweeps, progress=_bar(progress))
 
     # adapters already loaded by the main retriever are shared with style onboarding and style retrievers
@@ -222,8 +237,9 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
             "profile": args.profile,
             "model_overrides": overrides,
             "queries": source,
+            "metric_set": opts.metric_set,
             "ties": opts.ties,
-            "map_normaliser": opts.map_normaliser,
+            "map_normaliser": "hits (views)" if opts.metric_set == "paper" else opts.map_normaliser,
             "class_pattern": pattern,
             "classes": args.classes,
             "created_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -236,25 +252,28 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         "library": {"n_meshes": len(library), "n_classes": len(set(library.labels.values()))},
         **summary,
         "prompt_styles": style_results,
-        "groups": {key: group_metrics(run.records, key) for key in _group_keys(args, run.records)},
+        "groups": {
+            key: group_metrics(run.records, key, opts.metric_set) for key in _group_keys(args, run.records)
+        },
     }
     paths = write_report(doc, run.records, out, args.store, library, args.gallery, plots=not args.no_plots)
     inst = doc["base"]["instance"]
+    paper = opts.metric_set == "paper"
+    first = (
+        ("mAP@1", "mAP@5", "NN", "FT", "AP", "ANMRR")
+        if paper
+        else ("mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR")
+    )
+    second = ("NN", "FT", "ST", "F", "nDCG", "ANMRR") if paper else ("NN", "FT", "ST", "F", "DCG", "ANMRR")
+    print(f"metric set: {opts.metric_set}" + (" (reference scripts' definitions; NN in %)" if paper else ""))
     print(
         "instance: "
-        + ", ".join(
-            f"{k} {inst.get(k, float('nan')):.3f}" for k in ("mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR")
-        )
+        + ", ".join(f"{k} {inst.get(k, float('nan')):.3f}" for k in first)
         + f" (n={inst.get('n', 0)})"
     )
     if doc["base"].get("class"):
         cls = doc["base"]["class"]
-        print(
-            "class:    "
-            + ", ".join(
-                f"{k} {cls.get(k, float('nan')):.3f}" for k in ("NN", "FT", "ST", "F", "DCG", "ANMRR")
-            )
-        )
+        print("class:    " + ", ".join(f"{k} {cls.get(k, float('nan')):.3f}" for k in second))
     if run.unresolved or run.failed:
         print(
             f"warning: {len(run.unresolved)} queries name no library mesh, {len(run.failed)} failed "
@@ -343,9 +362,9 @@ def _onboarded_from(store_path: str) -> set[str]:
 def _bar(progress: bool):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from pipeline.progress import iterate  # tqdm on a terminal, plain lines in a log
 
-    return lambda it: tqdm(it, desc="queries", unit="query")
+    return lambda it: iterate(it, "queries", unit="query")
 
 
 if __name__ == "__main__":

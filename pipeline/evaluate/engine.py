@@ -16,22 +16,24 @@ FULL_RANKING = 1_000_000
 
 @dataclass(frozen=True)
 class Setting:
-    """The cheap knobs of one ranking: mode, stage-1 threshold, fallback top-k, ROI variant."""
+    """The cheap knobs of one ranking: mode, stage-1 threshold, fallback top-k (and its unit), ROI variant."""
 
     mode: str = "two-stage"
     threshold: float | None = None  # None: the retriever's default (the paper's 0.37)
     fallback_k: int = 10
     roi: str = "segm"
+    fallback_unit: str = "captions"  # what fallback_k counts: caption rows (paper) or meshes
 
     def label(self) -> str:
         tau = "default" if self.threshold is None else f"{self.threshold:.2f}"
-        return f"{self.mode} tau={tau} k={self.fallback_k} roi={self.roi}"
+        return f"{self.mode} tau={tau} k={self.fallback_k} {self.fallback_unit} roi={self.roi}"
 
     def to_json(self) -> dict:
         return {
             "mode": self.mode,
             "threshold": self.threshold,
             "fallback_k": self.fallback_k,
+            "fallback_unit": self.fallback_unit,
             "roi": self.roi,
         }
 
@@ -51,6 +53,8 @@ class Ranked:
     decided_by: str | None
     seconds: float
     threshold: float | None = None  # the tau the retriever applied (its default when the setting has None)
+    view_ids: np.ndarray | None = None  # mesh id of every ranked view, best first (paper metric set)
+    view_keys: np.ndarray | None = None  # (n_views, 1 or 2) float sort keys of those views, for ties
 
 
 @dataclass
@@ -99,7 +103,8 @@ class Engine:
         emb = self.retriever.embed(roi, query.prompt)
         return Embedded(roi, emb, time.perf_counter() - t0)
 
-    def rank(self, emb: Embedded, setting: Setting) -> Ranked:
+    def rank(self, emb: Embedded, setting: Setting, views: bool = False) -> Ranked:
+        """Every mesh the setting ranks; ``views`` adds the view-level ranking (the paper's mAP@k)."""
         t0 = time.perf_counter()
         res = self.retriever.rank(
             emb.embedding,
@@ -107,8 +112,16 @@ class Engine:
             threshold=setting.threshold,
             fallback_k=setting.fallback_k,
             top=FULL_RANKING,
+            fallback_unit=setting.fallback_unit,
+            views=views,
         )
         seconds = time.perf_counter() - t0
+        view_ids = view_keys = None
+        vr = getattr(res, "view_ranking", None)
+        if vr is not None:
+            view_ids = self._mesh_ids()[vr.mesh_idx]
+            cols = [vr.scores] if vr.tiebreak is None else [vr.scores, vr.tiebreak]
+            view_keys = np.stack([np.asarray(c, np.float64) for c in cols], axis=1)
         cands = list(res.candidates)
         text = [_f(getattr(c, "text_score", None)) for c in cands]
         image = [_f(getattr(c, "image_score", None)) for c in cands]
@@ -124,7 +137,15 @@ class Engine:
             decided_by=getattr(res, "decided_by", None),
             seconds=seconds,
             threshold=getattr(res, "threshold", setting.threshold),
+            view_ids=view_ids,
+            view_keys=view_keys,
         )
+
+    def _mesh_ids(self) -> np.ndarray:
+        """The retriever's active mesh ids as an object array (indexed by a view ranking's mesh_idx)."""
+        if getattr(self, "_ids", None) is None:
+            self._ids = np.asarray(list(self.retriever.mesh_ids), dtype=object)
+        return self._ids
 
 
 def _sort_key(mode: str, text: float | None, image: float | None):

@@ -61,7 +61,7 @@ def write_gallery(
     """Write one PNG strip per failure (worst first: expected model ranked lowest); return their entries."""
     from PIL import Image
 
-    fails = [r for r in records if r.metrics.get("top1", 1.0) < 1.0]
+    fails = [r for r in records if r.metrics.get("rank") != 1]  # top-1 misses, whatever the metric set
     fails.sort(key=lambda r: (-(r.metrics.get("rank") or 10**9), r.query.query_id))
     fails = fails[:limit]
     if not fails:

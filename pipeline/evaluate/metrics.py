@@ -1,6 +1,12 @@
-"""Retrieval metrics: the paper's mAP@k, top-k accuracy and the MI3DOR measures (NN, FT, ST, F, DCG, ANMRR).
+"""Retrieval metrics, in two sets (``--metrics``):
 
-Every function scores ONE query from its relevance vector ``rel`` (``rel[i]`` is true when the item the
+* ``paper`` (default): the reference scripts' definitions, which are what the paper's numbers mean: mAP@k
+  over library *views* with the hits normaliser, and the MI3DOR measures as the reference computes them
+  (:mod:`pipeline.evaluate.metrics_paper`).
+* ``standard``: the textbook definitions in this module: mAP@k over the ranked meshes normalised by
+  min(k, R), top-k accuracy, and NN, FT, ST, F, DCG, MPEG-7 ANMRR with kappa = relevant items in the library.
+
+Every function here scores ONE query from its relevance vector ``rel`` (``rel[i]`` is true when the item the
 system returned at rank ``i + 1`` is relevant) and ``n_relevant``, the number of relevant items in the whole
 library. The returned list may be shorter than the library (two-stage retrieval only ranks the stage-1
 candidates): relevant items that were not returned simply never count as found. Formulas are written out
@@ -14,6 +20,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+METRIC_SETS = ("paper", "standard")
 MAP_KS = (1, 3, 5, 10)
 TOP_KS = (1, 5)
 F_AT = 20  # MI3DOR reference: F-measure over the top 20
@@ -36,22 +43,25 @@ def relevance_vector(
     """
     if ties not in TIE_POLICIES:
         raise ValueError(f"unknown tie policy {ties!r}; choose from {', '.join(TIE_POLICIES)}")
-    rel = np.array([i in relevant for i in ranked_ids], dtype=bool)
+    if isinstance(ranked_ids, np.ndarray):
+        rel = np.isin(ranked_ids, list(relevant)) if relevant else np.zeros(len(ranked_ids), bool)
+    else:
+        rel = np.array([i in relevant for i in ranked_ids], dtype=bool)
     if scores is None or ties == "list" or len(rel) < 2:
         return rel
-    scores = list(scores)  # floats or tuples of floats (a sort key); NaN never equals anything
-    out = rel.copy()
-    start = 0
-    for end in range(1, len(rel) + 1):
-        if end == len(rel) or scores[end] != scores[start]:
-            run = rel[start:end]
-            hits = int(run.sum())
-            if ties == "pessimistic":
-                out[start:end] = np.arange(end - start) >= (end - start - hits)
-            else:
-                out[start:end] = np.arange(end - start) < hits
-            start = end
-    return out
+    # floats or tuples of floats (a sort key), one row per item; NaN never equals anything
+    keys = np.asarray(scores if isinstance(scores, np.ndarray) else list(scores), dtype=np.float64)
+    keys = keys.reshape(len(rel), -1)
+    new_run = np.ones(len(rel), bool)
+    new_run[1:] = np.any(keys[1:] != keys[:-1], axis=1)
+    starts = np.flatnonzero(new_run)
+    run = np.cumsum(new_run) - 1
+    length = np.diff(np.append(starts, len(rel)))[run]
+    hits = np.add.reduceat(rel.astype(np.int64), starts)[run]
+    pos = np.arange(len(rel)) - starts[run]
+    if ties == "pessimistic":
+        return pos >= length - hits
+    return pos < hits
 
 
 def _hits(rel: np.ndarray, k: int) -> int:
@@ -197,3 +207,23 @@ def aggregate(per_query: Sequence[dict[str, float]]) -> dict[str, float]:
 #: Metrics where lower is better (everything else: higher is better).
 LOWER_IS_BETTER = frozenset({"ANMRR", "NMRR"})
 HEADLINE = ("mAP@1", "mAP@3", "mAP@5", "mAP@10", "top1", "top5", "NN", "FT", "ST", "F", "DCG", "ANMRR")
+
+
+def headline(metric_set: str) -> tuple[str, ...]:
+    """The report's headline columns of a metric set."""
+    from pipeline.evaluate import metrics_paper
+
+    return metrics_paper.HEADLINE if metric_set == "paper" else HEADLINE
+
+
+def aggregate_set(metric_set: str, per_query: Sequence[dict]) -> dict[str, float]:
+    """:func:`aggregate` of ``metric_set`` (the paper set counts MI3DOR queries and reports NN in %)."""
+    from pipeline.evaluate import metrics_paper
+
+    return metrics_paper.aggregate(per_query) if metric_set == "paper" else aggregate(per_query)
+
+
+def check_metric_set(name: str) -> str:
+    if name not in METRIC_SETS:
+        raise ValueError(f"unknown metric set {name!r}; choose from {', '.join(METRIC_SETS)}")
+    return name

@@ -6,6 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 
 SWEEP_METRICS = ("mAP@1", "mAP@5", "top5", "FT")
+BAR_METRICS = ("mAP@1", "mAP@5", "top5", "NN", "FT", "DCG")
+#: the paper set's (NN is a percentage there, so it stays off these 0..1 axes)
+PAPER_SWEEP_METRICS = ("mAP@1", "mAP@5", "FT", "nDCG")
+PAPER_BAR_METRICS = ("mAP@1", "mAP@5", "mAP@10", "FT", "ST", "nDCG")
 
 
 def _plt():
@@ -21,14 +25,16 @@ def _series(rows: list[dict], level: str, metric: str) -> list[float]:
     return [(r.get(level) or {}).get(metric, float("nan")) for r in rows]
 
 
-def sweep_plot(rows: list[dict], knob: str, path: Path, title: str, xlabel: str) -> Path | None:
+def sweep_plot(
+    rows: list[dict], knob: str, path: Path, title: str, xlabel: str, metrics=SWEEP_METRICS
+) -> Path | None:
     """Metrics (instance level; class level dashed) against one knob, with stage-1 size on a second axis."""
     if len(rows) < 2:
         return None
     plt = _plt()
     xs = [r["setting"][knob] for r in rows]
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for metric in SWEEP_METRICS:
+    for metric in metrics:
         (line,) = ax.plot(xs, _series(rows, "instance", metric), marker="o", label=f"{metric} (instance)")
         if any(r.get("class") for r in rows):
             ax.plot(
@@ -51,12 +57,11 @@ def sweep_plot(rows: list[dict], knob: str, path: Path, title: str, xlabel: str)
     return path
 
 
-def bar_plot(groups: dict[str, dict], path: Path, title: str) -> Path | None:
+def bar_plot(groups: dict[str, dict], path: Path, title: str, metrics=BAR_METRICS) -> Path | None:
     """Grouped bars: one group per variant (mode, ROI, prompt style), one bar per headline metric."""
     if not groups:
         return None
     plt = _plt()
-    metrics = ("mAP@1", "mAP@5", "top5", "NN", "FT", "DCG")
     names = list(groups)
     width = 0.8 / len(names)
     fig, ax = plt.subplots(figsize=(7.5, 4))

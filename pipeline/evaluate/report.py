@@ -8,9 +8,31 @@ import json
 import math
 from pathlib import Path
 
-from pipeline.evaluate.metrics import HEADLINE
+from pipeline.evaluate.metrics import headline
 
 SWEEP_COLUMNS = ("mAP@1", "mAP@5", "top1", "top5", "FT", "DCG", "ANMRR")
+PAPER_SWEEP_COLUMNS = ("mAP@1", "mAP@5", "mAP@10", "NN", "FT", "nDCG", "ANMRR")
+GROUP_COLUMNS = {
+    "paper": ("n", "mAP@1", "mAP@5", "NN", "FT", "ANMRR"),
+    "standard": ("n", "mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR"),
+}
+SET_NOTES = {
+    "paper": "Metric set `paper`: the reference scripts' definitions (what the paper's numbers mean): mAP@k "
+    "ranks library views (each carries its mesh's label) and averages the precision at the hits in the top "
+    "k; NN (in %), FT, ST, F, nDCG, AP and ANMRR over the ranked meshes with kappa = relevant meshes in the "
+    "ranking, queries with none left out (n_mi3dor). See docs/evaluation.md.",
+    "standard": "Metric set `standard`: textbook definitions over the ranked meshes: mAP@k normalised by "
+    "the chosen normaliser, top-k accuracy, and NN, FT, ST, F, DCG, MPEG-7 ANMRR with kappa = relevant "
+    "meshes in the library. See docs/evaluation.md.",
+}
+
+
+def _set_of(doc: dict) -> str:
+    return doc["config"].get("metric_set", "standard")
+
+
+def sweep_columns(metric_set: str) -> tuple[str, ...]:
+    return PAPER_SWEEP_COLUMNS if metric_set == "paper" else SWEEP_COLUMNS
 
 
 def _num(v, digits: int = 3) -> str:
@@ -28,19 +50,20 @@ def _setting(summary: dict) -> str:
         if s["threshold"] is not None
         else f"{summary.get('threshold_used')} (retriever default)"
     )
-    return f"mode {s['mode']}, tau {tau}, fallback top-{s['fallback_k']}, ROI {s['roi']}"
+    unit = s.get("fallback_unit", "meshes")
+    return f"mode {s['mode']}, tau {tau}, fallback top-{s['fallback_k']} {unit}, ROI {s['roi']}"
 
 
-def _headline_rows(summary: dict) -> list[list[str]]:
+def _headline_rows(summary: dict, metric_set: str) -> list[list[str]]:
     rows = []
     for level in ("instance", "class"):
         m = summary.get(level)
         if m:
-            rows.append([level, str(m.get("n", 0))] + [_num(m.get(k)) for k in HEADLINE])
+            rows.append([level, str(m.get("n", 0))] + [_num(m.get(k)) for k in headline(metric_set)])
     return rows
 
 
-def _sweep_rows(rows: list[dict], knob: str) -> list[list[str]]:
+def _sweep_rows(rows: list[dict], knob: str, metric_set: str) -> list[list[str]]:
     out = []
     for r in rows:
         v = r["setting"][knob]
@@ -48,7 +71,7 @@ def _sweep_rows(rows: list[dict], knob: str) -> list[list[str]]:
         cls = r.get("class") or {}
         out.append(
             [_num(v, 2) if isinstance(v, float) else ("default" if v is None else str(v))]
-            + [_num(inst.get(k)) for k in SWEEP_COLUMNS]
+            + [_num(inst.get(k)) for k in sweep_columns(metric_set)]
             + [_num(cls.get("mAP@1")), _num(cls.get("FT"))]
             + [_num(r.get("fallback_rate"), 2), _num(r.get("mean_stage1"), 1)]
         )
@@ -59,6 +82,7 @@ def _sections(doc: dict, plots: dict[str, str], gallery: list[dict]) -> list[tup
     """The report as (kind, payload) blocks shared by the Markdown and HTML writers."""
     blocks: list[tuple[str, object]] = [("h1", "OSCAR retrieval evaluation")]
     cfg = doc["config"]
+    mset = _set_of(doc)
     facts = [
         f"store: `{cfg['store']}`",
         f"profile: `{cfg['profile']}`"
@@ -67,14 +91,15 @@ def _sections(doc: dict, plots: dict[str, str], gallery: list[dict]) -> list[tup
         f"{len(doc['unresolved'])} with no matching library mesh, {len(doc['failed'])} failed)",
         f"library: {doc['library']['n_meshes']} meshes, {doc['library']['n_classes']} classes",
         f"base setting: {_setting(doc['base'])}",
-        f"ties: {cfg['ties']}, mAP@k normaliser: {cfg['map_normaliser']}",
+        f"metric set: `{mset}`; ties: {cfg['ties']}, mAP@k normaliser: {cfg['map_normaliser']}",
         f"command: `{cfg['command']}`",
     ]
     blocks.append(("list", facts))
     if cfg.get("note"):
         blocks.append(("p", cfg["note"]))
-    blocks.append(("h2", "Headline metrics (base setting)"))
-    blocks.append(("table", (["level", "n"] + list(HEADLINE), _headline_rows(doc["base"]))))
+    blocks.append(("p", SET_NOTES[mset]))
+    blocks.append(("h2", f"Headline metrics (base setting, metric set {mset})"))
+    blocks.append(("table", (["level", "n"] + list(headline(mset)), _headline_rows(doc["base"], mset))))
     b = doc["base"]
     blocks.append(
         (
@@ -86,7 +111,7 @@ def _sections(doc: dict, plots: dict[str, str], gallery: list[dict]) -> list[tup
     )
     if "rank_hist" in plots:
         blocks.append(("img", (plots["rank_hist"], "rank of the expected model")))
-    cols = ["value"] + list(SWEEP_COLUMNS) + ["class mAP@1", "class FT", "fallback", "stage-1"]
+    cols = ["value"] + list(sweep_columns(mset)) + ["class mAP@1", "class FT", "fallback", "stage-1"]
     titles = {
         "tau": ("Threshold sweep (tau)", "threshold"),
         "fallback_k": ("Fallback top-k sweep", "fallback_k"),
@@ -97,23 +122,23 @@ def _sections(doc: dict, plots: dict[str, str], gallery: list[dict]) -> list[tup
         if not rows:
             continue
         title, knob = titles[name]
-        blocks.append(("h2", title))
-        blocks.append(("table", (cols, _sweep_rows(rows, knob))))
+        blocks.append(("h2", f"{title} (metric set {mset})"))
+        blocks.append(("table", (cols, _sweep_rows(rows, knob, mset))))
         for key in (f"{name}_sweep", f"{name}_bars"):
             if key in plots:
                 blocks.append(("img", (plots[key], title)))
     if doc.get("prompt_styles"):
-        blocks.append(("h2", "Prompt styles (one onboarded store per style)"))
+        blocks.append(("h2", f"Prompt styles (one onboarded store per style, metric set {mset})"))
         rows = []
         for style, s in doc["prompt_styles"].items():
             inst = s.get("instance") or {}
-            rows.append([style, s.get("store", "")] + [_num(inst.get(k)) for k in SWEEP_COLUMNS])
-        blocks.append(("table", (["style", "store"] + list(SWEEP_COLUMNS), rows)))
+            rows.append([style, s.get("store", "")] + [_num(inst.get(k)) for k in sweep_columns(mset)])
+        blocks.append(("table", (["style", "store"] + list(sweep_columns(mset)), rows)))
         if "styles_bars" in plots:
             blocks.append(("img", (plots["styles_bars"], "prompt styles")))
     for key, groups in (doc.get("groups") or {}).items():
-        blocks.append(("h2", f"By {key} (base setting, instance level)"))
-        cols = ["n", "mAP@1", "mAP@5", "top1", "top5", "FT", "ANMRR"]
+        blocks.append(("h2", f"By {key} (base setting, instance level, metric set {mset})"))
+        cols = list(GROUP_COLUMNS[mset])
         rows = [[value] + [_num(m.get(c)) for c in cols] for value, m in groups.items()]
         blocks.append(("table", ([key] + cols, rows)))
     if doc.get("timings"):
@@ -213,26 +238,46 @@ def make_plots(doc: dict, ranks: list, plot_dir: Path) -> dict[str, str]:
             made[key] = f"{plot_dir.name}/{Path(path).name}"
 
     sw = doc["sweeps"]
+    mset = _set_of(doc)
+    paper = mset == "paper"
+    lines = P.PAPER_SWEEP_METRICS if paper else P.SWEEP_METRICS
+    bars = P.PAPER_BAR_METRICS if paper else P.BAR_METRICS
+    tag = f" (metric set {mset})"
     keep(
         "tau_sweep",
         P.sweep_plot(
-            sw.get("tau", []), "threshold", plot_dir / "tau_sweep.png", "Stage-1 threshold tau", "tau"
+            sw.get("tau", []),
+            "threshold",
+            plot_dir / "tau_sweep.png",
+            "Stage-1 threshold tau" + tag,
+            "tau",
+            lines,
         ),
     )
     keep(
         "fallback_k_sweep",
         P.sweep_plot(
-            sw.get("fallback_k", []), "fallback_k", plot_dir / "topk_sweep.png", "Fallback top-k", "k"
+            sw.get("fallback_k", []),
+            "fallback_k",
+            plot_dir / "topk_sweep.png",
+            "Fallback top-k" + tag,
+            "k",
+            lines,
         ),
     )
     for name in ("mode", "roi"):
         groups = {r["setting"][name]: r for r in sw.get(name, [])}
         keep(
             f"{name}_bars",
-            P.bar_plot(groups, plot_dir / f"{name}.png", f"{name} ablation") if len(groups) > 1 else None,
+            P.bar_plot(groups, plot_dir / f"{name}.png", f"{name} ablation{tag}", bars)
+            if len(groups) > 1
+            else None,
         )
     if doc.get("prompt_styles"):
-        keep("styles_bars", P.bar_plot(doc["prompt_styles"], plot_dir / "prompt_styles.png", "prompt styles"))
+        keep(
+            "styles_bars",
+            P.bar_plot(doc["prompt_styles"], plot_dir / "prompt_styles.png", "prompt styles" + tag, bars),
+        )
     keep("rank_hist", P.rank_histogram(ranks, plot_dir / "rank_hist.png", "expected model's rank (base)"))
     return made
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pipeline.evaluate import metrics as M
+from pipeline.evaluate import metrics_paper
 from pipeline.evaluate.datasets import Query
 from pipeline.evaluate.engine import Embedded, Engine, Ranked, Setting
 from pipeline.evaluate.library import Library
@@ -70,7 +71,16 @@ def relevance_for(q: Query, library: Library) -> Relevance | None:
 @dataclass
 class MetricOptions:
     ties: str = "pessimistic"
-    map_normaliser: str = "min"
+    map_normaliser: str = "min"  # the standard set's mAP@k normaliser (the paper set's is always hits)
+    metric_set: str = "paper"  # "paper" (reference scripts' definitions) | "standard" (textbook)
+
+    def __post_init__(self) -> None:
+        M.check_metric_set(self.metric_set)
+
+    @property
+    def views(self) -> bool:
+        """Whether rankings need the view level (the paper set's mAP@k ranks views)."""
+        return self.metric_set == "paper"
 
 
 @dataclass
@@ -78,6 +88,7 @@ class SettingResult:
     """Per-query metrics (instance and class level) and retrieval stats of one setting."""
 
     setting: Setting
+    metric_set: str = "paper"
     instance: list[dict] = field(default_factory=list)
     klass: list[dict] = field(default_factory=list)
     fallback: list[bool] = field(default_factory=list)
@@ -87,11 +98,11 @@ class SettingResult:
 
     def add(self, ranked: Ranked, rel: Relevance, opts: MetricOptions) -> dict:
         vec = M.relevance_vector(ranked.ids, rel.instance, ranked.scores, opts.ties)
-        qm = M.query_metrics(vec, len(rel.instance), map_normaliser=opts.map_normaliser)
+        qm = _query_metrics(ranked, vec, rel.instance, opts)
         self.instance.append(qm)
         if rel.klass is not None:
             cvec = M.relevance_vector(ranked.ids, rel.klass, ranked.scores, opts.ties)
-            self.klass.append(M.query_metrics(cvec, len(rel.klass), map_normaliser=opts.map_normaliser))
+            self.klass.append(_query_metrics(ranked, cvec, rel.klass, opts))
         self.fallback.append(ranked.used_fallback)
         if ranked.n_stage1 is not None:
             self.n_stage1.append(int(ranked.n_stage1))
@@ -103,13 +114,24 @@ class SettingResult:
     def summary(self) -> dict:
         return {
             "setting": self.setting.to_json(),
+            "metric_set": self.metric_set,
             "threshold_used": self.threshold_used,
-            "instance": M.aggregate(self.instance),
-            "class": M.aggregate(self.klass) if self.klass else None,
+            "instance": M.aggregate_set(self.metric_set, self.instance),
+            "class": M.aggregate_set(self.metric_set, self.klass) if self.klass else None,
             "fallback_rate": float(np.mean(self.fallback)) if self.fallback else None,
             "mean_stage1": float(np.mean(self.n_stage1)) if self.n_stage1 else None,
             "mean_rank_ms": 1000 * float(np.mean(self.rank_seconds)) if self.rank_seconds else None,
         }
+
+
+def _query_metrics(ranked: Ranked, mesh_rel, relevant: set[str], opts: MetricOptions) -> dict:
+    """One query's metrics in ``opts.metric_set`` (``mesh_rel``: relevance over the ranked meshes)."""
+    if opts.metric_set == "paper":
+        if ranked.view_ids is None:
+            raise ValueError("the paper metric set needs the view-level ranking (Engine.rank(views=True))")
+        view_rel = M.relevance_vector(ranked.view_ids, relevant, ranked.view_keys, opts.ties)
+        return metrics_paper.query_metrics(view_rel, mesh_rel)
+    return M.query_metrics(mesh_rel, len(relevant), map_normaliser=opts.map_normaliser)
 
 
 @dataclass
@@ -176,7 +198,7 @@ def evaluate(
     settings = plan.settings() if sweeps else [plan.base]
     if not sweeps:
         plan = replace(plan, taus=(), top_ks=(), modes=(), rois=())
-    results = {s: SettingResult(s) for s in settings}
+    results = {s: SettingResult(s, opts.metric_set) for s in settings}
     rois = list(dict.fromkeys([plan.base.roi] + [s.roi for s in settings]))
     records: list[QueryRecord] = []
     unresolved: list[str] = []
@@ -197,23 +219,23 @@ def evaluate(
             failed.append({"query_id": q.query_id, "error": f"{type(exc).__name__}: {exc}"[:300]})
             continue
         for s in settings:
-            ranked = engine.rank(embedded[s.roi], s)
+            ranked = engine.rank(embedded[s.roi], s, views=opts.views)
             qm = results[s].add(ranked, rel, opts)
             if s == plan.base:
                 # keep a thumbnail of the ROI for the failure gallery only (memory stays small)
-                thumb = _thumbnail(embedded[s.roi].roi) if qm["top1"] < 1 else None
+                thumb = _thumbnail(embedded[s.roi].roi) if qm["rank"] != 1 else None
                 records.append(QueryRecord(q, ranked, rel, qm, thumb))
     return EvalRun(plan, results, records, unresolved, failed, embed_seconds)
 
 
-def group_metrics(records: list[QueryRecord], key: str) -> dict[str, dict]:
+def group_metrics(records: list[QueryRecord], key: str, metric_set: str = "paper") -> dict[str, dict]:
     """Instance-level base-setting metrics per value of a query field or metadata key (e.g. background)."""
     groups: dict[str, list[dict]] = {}
     for r in records:
         value = getattr(r.query, key, None) if key in ("label", "prompt") else r.query.meta.get(key)
         if value is not None:
             groups.setdefault(str(value), []).append({k: v for k, v in r.metrics.items() if k != "rank"})
-    return {v: M.aggregate(rows) for v, rows in sorted(groups.items())}
+    return {v: M.aggregate_set(metric_set, rows) for v, rows in sorted(groups.items())}
 
 
 def _thumbnail(roi, size: int = 256):

@@ -197,9 +197,9 @@ def generate(
 ) -> list[Query]:
     """Render ``cfg.per_mesh`` queries per mesh into ``out_dir``; return them (also written as JSONL)."""
     from PIL import Image
-    from tqdm.auto import tqdm
 
     from pipeline.mesh.load import MeshError, load_mesh
+    from pipeline.progress import iterate
 
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -209,7 +209,7 @@ def generate(
     queries: list[Query] = []
     skipped: list[dict] = []
     try:
-        for m in tqdm(meshes, desc="synthetic", unit="mesh", disable=not progress):
+        for m in iterate(meshes, "synthetic", unit="mesh", enabled=progress):
             rng = mesh_rng(cfg.seed, m.source_path)
             views = sample_views(cfg, rng)
             try:

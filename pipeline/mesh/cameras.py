@@ -8,17 +8,24 @@ import numpy as np
 
 from pipeline.mesh.settings import RenderConfig
 
-#: Directions of Cap3D's 8 fixed camera positions (x, y, z as multiples of distance * ratio).
+#: Directions of Cap3D's 8 fixed camera positions (x, y, z as multiples of distance * ratio), as its
+#: Blender script sets them: ``elevation_factor`` starts at 0.2 and is reassigned before views 2 (0.5),
+#: 3 (0.7), 6 (0.5) and 7 (0.7), so views 4 and 5 inherit view 3's 0.7: elevation atan(0.7 / sqrt(2)) =
+#: 26.33 degrees, not the 8.05 degrees that 0.2 would give. Elevations, views 0-7: 8.05, 8.05, 24.09, 32.05,
+#: 26.33, 26.33, -24.09, -32.05 degrees.
 CAP3D_DIRECTIONS = [
     (1.0, -1.0, 0.2),
     (-1.0, 1.0, 0.2),
     (1.0, -0.5, 0.5),
     (-0.5, 1.0, 0.7),
-    (1.0, 1.0, 0.2),
-    (-1.0, -1.0, 0.2),
+    (1.0, 1.0, 0.7),
+    (-1.0, -1.0, 0.7),
     (1.0, 0.5, -0.5),
     (-0.5, -1.0, -0.7),
 ]
+#: Background of the optional extra reference view: Cap3D's ``_bg`` render has a transparent film (RGBA,
+#: transparent pixels 0), which reads as black when the image is loaded as RGB for DINOv2.
+EXTRA_BG_COLOR = (0, 0, 0)
 
 
 def view_directions(cfg: RenderConfig) -> list[tuple[float, float, np.ndarray]]:
@@ -39,6 +46,25 @@ def view_directions(cfg: RenderConfig) -> list[tuple[float, float, np.ndarray]]:
     else:
         raise ValueError(f"unknown camera layout {cfg.cameras!r}; choose oscar or cap3d")
     return out
+
+
+def extra_bg_view(cfg: RenderConfig) -> tuple[int, float, float, np.ndarray] | None:
+    """(view_index, azimuth, elevation, direction) of the extra ``_bg`` reference view, or ``None``.
+
+    The reference renders it from view 0's position on a transparent background and uses it as one more
+    DINOv2 reference view (stage 2 only: it is not captioned). Its index follows the layout's views.
+    """
+    if not getattr(cfg, "extra_bg_view", False):
+        return None
+    views = view_directions(cfg)
+    az, el, d = views[0]
+    return len(views), az, el, d
+
+
+def is_captioned(cfg: RenderConfig, view_index: int) -> bool:
+    """Whether a view gets a caption (every layout view; not the extra background view)."""
+    extra = extra_bg_view(cfg)
+    return extra is None or view_index != extra[0]
 
 
 def _direction(az_deg: float, el_deg: float) -> np.ndarray:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.mesh.cameras import framed_pose, view_directions
+from pipeline.mesh.cameras import EXTRA_BG_COLOR, extra_bg_view, framed_pose, view_directions
 from pipeline.mesh.load import LoadedMesh
 from pipeline.mesh.settings import RenderConfig
 
@@ -44,6 +44,7 @@ class Renderer:
         self._pyrender = pyrender
         self._renderer = pyrender.OffscreenRenderer(cfg.resolution, cfg.resolution)
         bg = [c / 255.0 for c in cfg.background] + [1.0]
+        self._bg = bg
         self._scene = pyrender.Scene(bg_color=bg, ambient_light=[0.45, 0.45, 0.45])
         self._cam = self._scene.add(
             pyrender.PerspectiveCamera(yfov=np.radians(cfg.yfov_deg), znear=0.05, zfar=100.0), pose=np.eye(4)
@@ -78,17 +79,28 @@ class Renderer:
                     mat.roughnessFactor = 0.9
             nodes.append(self._scene.add(pm))
         try:
-            views = []
-            for i, (az, el, direction) in enumerate(view_directions(self.cfg)):
-                pose = framed_pose(mesh.sample_points, direction, self.cfg.yfov_deg, self.cfg.fill)
-                self._scene.set_pose(self._cam, pose)
-                self._scene.set_pose(self._light, pose)
-                color, _ = self._renderer.render(self._scene)
-                views.append(RenderedView(i, az, el, pose, np.ascontiguousarray(color[:, :, :3])))
+            views = [
+                self._view(mesh, i, az, el, direction)
+                for i, (az, el, direction) in enumerate(view_directions(self.cfg))
+            ]
+            extra = extra_bg_view(self.cfg)
+            if extra is not None:
+                self._scene.bg_color = np.array([c / 255.0 for c in EXTRA_BG_COLOR] + [1.0])
+                try:
+                    views.append(self._view(mesh, *extra))
+                finally:
+                    self._scene.bg_color = np.array(self._bg)
             return views
         finally:
             for n in nodes:
                 self._scene.remove_node(n)
+
+    def _view(self, mesh: LoadedMesh, i: int, az: float, el: float, direction: np.ndarray) -> RenderedView:
+        pose = framed_pose(mesh.sample_points, direction, self.cfg.yfov_deg, self.cfg.fill)
+        self._scene.set_pose(self._cam, pose)
+        self._scene.set_pose(self._light, pose)
+        color, _ = self._renderer.render(self._scene)
+        return RenderedView(i, az, el, pose, np.ascontiguousarray(color[:, :, :3]))
 
     def close(self) -> None:
         self._renderer.delete()

@@ -25,6 +25,12 @@ class RenderConfig:
     views_per_ring: int = 4
     max_texture: int = 1024  # textures are downscaled to this edge length before upload
     up: str = "auto"  # "auto" (z up; y up for glTF) | "z" | "y"
+    extra_bg_view: bool = False  # reference scripts: view 0 again on black, an extra stage-2 view
 
     def fingerprint(self) -> str:
-        return fingerprint({"v": RENDER_VERSION, **asdict(self)})
+        d = asdict(self)
+        if not d["extra_bg_view"]:
+            del d["extra_bg_view"]  # off: the fingerprint of before the option existed (stores stay valid)
+        if self.cameras == "cap3d":
+            d["cap3d_layout"] = 2  # views 4 and 5 at 26.3 deg (0.7), as the reference; 1 had them at 8 deg
+        return fingerprint({"v": RENDER_VERSION, **d})

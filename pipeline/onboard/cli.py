@@ -34,6 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["oscar", "cap3d"],
         help="oscar: 4 views at -15 and 4 at +15 deg elevation; cap3d: the reference scripts' 8 positions",
     )
+    p.add_argument(
+        "--extra-bg-view",
+        action="store_true",
+        help="also render view 0 on black as an extra stage-2 (DINOv2) reference view, not captioned "
+        "(the reference scripts' _bg render)",
+    )
     p.add_argument("--resolution", type=int, default=512, help="view size in pixels (default: 512)")
     p.add_argument(
         "--upper-ring-offset",
@@ -102,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
                 resolution=args.resolution,
                 upper_ring_offset_deg=args.upper_ring_offset,
                 up=args.up,
+                extra_bg_view=args.extra_bg_view,
             ),
             max_faces=args.max_faces,
             render_timeout_s=args.render_timeout,

@@ -20,10 +20,10 @@ from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding
-from pipeline.query.results import Candidate, QueryEmbedding, QueryResult
+from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
-from pipeline.query.stage1 import TextFilter
+from pipeline.query.stage1 import FALLBACK_UNITS, TextFilter
 from pipeline.query.stage2 import ViewReranker
 
 
@@ -179,10 +179,20 @@ class Retriever:
         fallback_k: int = 10,
         top: int = 5,
         prompt_weight: float | None = None,
+        fallback_unit: str | None = None,
+        views: bool = False,
     ) -> QueryResult:
-        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps)."""
+        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps).
+
+        ``fallback_unit``: what ``fallback_k`` counts when nothing passes tau, ``"captions"`` (the paper's:
+        the top-k caption rows kept as their distinct models) or ``"meshes"``; ``None`` = the settings'.
+        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses.
+        """
         if mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        unit = self.settings.fallback_unit if fallback_unit is None else fallback_unit
+        if unit not in FALLBACK_UNITS:
+            raise QueryError(f"unknown fallback unit {unit!r}; choose from {', '.join(FALLBACK_UNITS)}")
         if int(top) < 1 or int(fallback_k) < 1:
             raise QueryError("--top and --fallback-k must be at least 1")
         tau = self.settings.threshold if threshold is None else float(threshold)
@@ -196,13 +206,15 @@ class Retriever:
         timings: dict[str, float] = {}
         try:
             if mode == "image-only":
-                return self._rank_image_only(emb, top, tau, fallback_k, w, timings)
+                return self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views)
+            text_only = mode == "text-only"
             s1 = self.text_filter.run(
                 stage1_vector(emb, w),
-                None if mode == "text-only" else tau,
-                top if mode == "text-only" else fallback_k,
+                None if text_only else tau,
+                top if text_only else fallback_k,
+                "meshes" if text_only else unit,  # text-only lists the top models
             )
-            s2 = self.reranker.score(emb.image_space, s1.mesh_idx)
+            s2 = self.reranker.score(emb.image_space, s1.mesh_idx, per_view=views and not text_only)
         except ValueError as exc:  # vector widths that do not match the store
             raise QueryError(
                 f"{exc}: the store was embedded with other models than this query uses"
@@ -220,18 +232,38 @@ class Retriever:
             self._candidate(i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j])
             for i, j in enumerate(order)
         ]
-        return QueryResult(
-            cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w
+        result = QueryResult(
+            cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
         )
+        if views and mode == "text-only":
+            result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
+        elif views:
+            result.view_ranking = _view_ranking(s1.mesh_idx, s2, s1.scores)
+        return result
 
-    def _rank_image_only(self, emb, top, tau, fallback_k, w, timings) -> QueryResult:
-        s2 = self.reranker.score(emb.image_space, None)
+    def _caption_ranking(self, vec, mesh_idx: np.ndarray) -> ViewRanking:
+        """Every caption row of ``mesh_idx`` by its own stage-1 cosine (text-only's view-level ranking)."""
+        rows_mesh, scores = self.text_filter.caption_scores(vec)
+        keep = np.zeros(self.n_meshes, bool)
+        keep[np.asarray(mesh_idx, dtype=np.int64)] = True
+        sel = keep[rows_mesh]
+        m, s = rows_mesh[sel], scores[sel]
+        order = np.lexsort((m, -s))
+        return ViewRanking(m[order], np.full(len(order), -1, np.int16), s[order])
+
+    def _rank_image_only(self, emb, top, tau, fallback_k, w, timings, unit, views=False) -> QueryResult:
+        s2 = self.reranker.score(emb.image_space, None, per_view=views)
         timings["stage1_ms"] = 0.0
         timings["stage2_ms"] = s2.seconds * 1000
         idx = np.arange(len(s2.scores))
         order = np.lexsort((idx, -s2.scores))[: int(top)]
         cands = [self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j]) for i, j in enumerate(order)]
-        return QueryResult(cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w)
+        result = QueryResult(
+            cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w, unit
+        )
+        if views:
+            result.view_ranking = _view_ranking(idx, s2, None)
+        return result
 
     def _candidate(self, rank, mesh_idx, text, image, view) -> Candidate:
         j = int(mesh_idx)
@@ -259,6 +291,7 @@ class Retriever:
         fallback_k: int = 10,
         top: int = 5,
         prompt_weight: float | None = None,
+        fallback_unit: str | None = None,
     ) -> QueryResult:
         """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
         if mode not in MODES:
@@ -271,7 +304,7 @@ class Retriever:
         emb = self.embed(roi, prompt)
         t2 = time.perf_counter()
         load_emb = sum(self.load_seconds.values()) - loaded - load_roi
-        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight)
+        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight, fallback_unit)
         t3 = time.perf_counter()
         result.timings = {
             "model_load_ms": (load_roi + load_emb) * 1000,
@@ -296,6 +329,11 @@ class Retriever:
     def n_meshes(self) -> int:
         return len(self._mesh_id)
 
+    @property
+    def mesh_ids(self) -> list[str]:
+        """Active mesh ids in ``mesh_idx`` order (what a :class:`ViewRanking`'s ``mesh_idx`` indexes)."""
+        return self._mesh_id
+
     def mesh(self, mesh_id: str) -> dict:
         """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
         j = self._mesh_id.index(mesh_id)
@@ -312,3 +350,15 @@ class Retriever:
             "caption_fingerprint": fps["caption"],
         }
         return self.tables.con.sql(load_sql("candidate_views"), params=params).to_arrow_table().to_pylist()
+
+
+def _view_ranking(mesh_idx: np.ndarray, s2, text: np.ndarray | None) -> ViewRanking:
+    """Flatten stage 2's per-view matrix of ``mesh_idx`` into one ranking of views, best first."""
+    scores, ids = s2.view_scores, s2.view_ids
+    mesh = np.broadcast_to(np.asarray(mesh_idx, dtype=np.int32)[:, None], scores.shape)
+    valid = ids >= 0
+    m, v, s = mesh[valid], ids[valid], scores[valid]
+    t = None if text is None else np.broadcast_to(np.asarray(text, np.float32)[:, None], scores.shape)[valid]
+    keys = (v, m, -s) if t is None else (v, m, -t, -s)
+    order = np.lexsort(keys)
+    return ViewRanking(m[order], v[order], s[order], None if t is None else t[order])

@@ -70,6 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="stage-1 top-k when nothing passes tau (default 10; reference scripts: 15)",
     )
     how.add_argument(
+        "--fallback-unit",
+        default="captions",
+        choices=["captions", "meshes"],
+        help="what --fallback-k counts: caption rows, kept as their distinct models (paper, default), "
+        "or models",
+    )
+    how.add_argument(
         "--prompt-weight",
         type=float,
         metavar="W",
@@ -179,6 +186,7 @@ def _run(args: argparse.Namespace) -> int:
         "mode": args.mode,
         "threshold": args.threshold,
         "fallback_k": args.fallback_k,
+        "fallback_unit": args.fallback_unit,
         "top": args.top,
     }
     with retriever:

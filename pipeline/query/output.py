@@ -17,7 +17,11 @@ def _stage1_line(r: QueryResult) -> str:
     if r.mode == "text-only":
         return f"text-only: the top {r.n_stage1} models by stage-1 score"
     if r.used_fallback:
-        kept = f"none reached tau {r.threshold:.2f}: kept the top {r.n_stage1} (fallback-k {r.fallback_k})"
+        unit = getattr(r, "fallback_unit", "meshes")
+        kept = (
+            f"none reached tau {r.threshold:.2f}: kept the top {r.n_stage1} "
+            f"(fallback-k {r.fallback_k} {unit})"
+        )
     else:
         kept = f"{r.n_stage1} model{'s' * (r.n_stage1 != 1)} reached tau {r.threshold:.2f}"
     return f"stage 1: {kept}; decided by {r.decided_by.replace('stage', 'stage ')}"

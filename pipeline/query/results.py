@@ -45,6 +45,21 @@ class Candidate:
 
 
 @dataclass
+class ViewRanking:
+    """Every ranked reference view (or, in text-only mode, caption row) with its mesh, best first.
+
+    The unit the paper's mAP@k ranks (``pipeline.evaluate.metrics``, the ``paper`` set): two-stage ranks the
+    stage-1 candidates' views by their stage-2 cosine (then the mesh's stage-1 score), image-only every view,
+    text-only every caption row of the ranked meshes by its own stage-1 cosine.
+    """
+
+    mesh_idx: np.ndarray  # int32 position in the store's active meshes, per item
+    view_index: np.ndarray  # int16 view_index per item (-1 for a caption row)
+    scores: np.ndarray  # float32, the primary sort key
+    tiebreak: np.ndarray | None = None  # float32 secondary key (two-stage: the mesh's stage-1 score)
+
+
+@dataclass
 class QueryResult:
     """Ranked candidates plus how they were decided."""
 
@@ -57,8 +72,10 @@ class QueryResult:
     threshold: float | None = None
     fallback_k: int = 10
     prompt_weight: float = 0.0
+    fallback_unit: str = "captions"  # what fallback_k counted: caption rows or meshes
     query: dict = field(default_factory=dict)  # image, prompt, ROI and models (filled by Retriever.query)
     roi: object | None = field(default=None, repr=False)  # the Roi (Retriever.query), not serialised
+    view_ranking: ViewRanking | None = field(default=None, repr=False)  # rank(views=True); not serialised
 
     @property
     def best(self) -> Candidate | None:
@@ -72,6 +89,7 @@ class QueryResult:
             "used_fallback": self.used_fallback,
             "threshold": self.threshold,
             "fallback_k": self.fallback_k,
+            "fallback_unit": self.fallback_unit,
             "prompt_weight": self.prompt_weight,
             "n_stage1": self.n_stage1,
             "candidates": [c.to_dict() for c in self.candidates],

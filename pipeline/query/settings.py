@@ -3,7 +3,8 @@
 Thresholds live in the space of the stage-1 scores, which differs per profile:
 
 * ``paper``: cosine between the ROI's CLIP image embedding and caption CLIP text embeddings; tau = 0.37
-  (paper and reference scripts); fallback top-10 (the reference scripts use 15).
+  (paper and reference scripts); fallback top-10 counted in captions (the paper's k; the reference scripts
+  keep the top 15 captions as their distinct meshes), or in meshes with ``fallback_unit="meshes"``.
 * ``offline``: weighted mean of two MiniLM cosines (ROI attribute caption vs library captions, and the
   prompt vs library captions). Attribute captions share a template, so these cosines run much higher than
   CLIP's; tau was measured on onboarded YCB meshes (see docs/query.md, "Offline threshold").
@@ -24,6 +25,7 @@ class QuerySettings:
 
     threshold: float  # stage-1 tau
     fallback_k: int = 10  # stage-1 top-k when nothing passes tau (reference scripts: 15)
+    fallback_unit: str = "captions"  # what fallback_k counts: caption rows (paper) or "meshes"
     prompt_weight: float = 0.0  # weight of the prompt's text embedding in the stage-1 query vector
     top: int = 5
     max_side: int = 2048  # larger photos are downscaled (boxes and masks are given in original pixels)

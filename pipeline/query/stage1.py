@@ -21,6 +21,8 @@ import pyarrow as pa
 from pipeline.db import load_sql
 
 SLICES = 8
+#: What the fallback top-k counts: caption rows (paper, reference scripts) or models.
+FALLBACK_UNITS = ("captions", "meshes")
 #: rows per Arrow record batch: DuckDB scans batches in parallel
 BATCH_ROWS = 65536
 
@@ -82,9 +84,36 @@ class TextFilter:
             self.con.execute("SET threads = ?", [int(threads)])
         self.con.register("stage1_captions", captions)
         self.sql = load_sql("stage1_text_filter")
+        self._matrix: np.ndarray | None = None
 
-    def run(self, query: np.ndarray, threshold: float | None, fallback_k: int) -> Stage1Result:
-        """Models scoring >= ``threshold`` (best first), else the ``fallback_k`` best; ``None`` = top-k only."""
+    def caption_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mesh_idx, cosine) of every caption row, in table order (evaluation's view-level text ranking).
+
+        The same inner products as the SQL up to float rounding; the dense matrix is built on first use.
+        """
+        if self._matrix is None:
+            parts = [vectors(self.table, f"e{i}") for i in range(SLICES)]
+            self._matrix = np.concatenate(parts, axis=1) if self.n_rows else np.zeros((0, 1), np.float32)
+            self._mesh_idx = self.table.column("mesh_idx").to_numpy().astype(np.int32)
+        q = np.zeros(self.width * SLICES, np.float32)
+        v = np.asarray(query, dtype=np.float32).reshape(-1)
+        if v.shape[0] != self.dim:
+            raise ValueError(f"query vector has {v.shape[0]} dims, captions have {self.dim}")
+        q[: len(v)] = v
+        if not self.n_rows:
+            return np.zeros(0, np.int32), np.zeros(0, np.float32)
+        return self._mesh_idx, (self._matrix @ q).astype(np.float32)
+
+    def run(
+        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
+    ) -> Stage1Result:
+        """Models scoring >= ``threshold`` (best first); when none does (or ``threshold`` is ``None``) the
+        fallback: the distinct models of the ``fallback_k`` best captions (``fallback_unit="captions"``, the
+        paper's) or the ``fallback_k`` best models (``"meshes"``)."""
+        if fallback_unit not in FALLBACK_UNITS:
+            raise ValueError(
+                f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}"
+            )
         q = np.asarray(query, dtype=np.float32).reshape(-1)
         if q.shape[0] != self.dim:
             raise ValueError(f"query vector has {q.shape[0]} dims, captions have {self.dim}")
@@ -93,6 +122,7 @@ class TextFilter:
             **query_params(q, self.width),
             "threshold": None if threshold is None else float(threshold),
             "fallback_k": int(fallback_k),
+            "fallback_unit": fallback_unit,
         }
         out = self.con.execute(self.sql, params).fetchnumpy()
         seconds = time.perf_counter() - t0

@@ -19,6 +19,8 @@ class Stage2Result:
     scores: np.ndarray  # float32 per requested mesh; -inf when the mesh has no view embeddings
     best_view: np.ndarray  # int16 view_index per requested mesh; -1 when none
     seconds: float
+    view_scores: np.ndarray | None = None  # (meshes, max_views) float32 per-view cosine, -inf = no view
+    view_ids: np.ndarray | None = None  # (meshes, max_views) int16 view_index, -1 = no view
 
 
 def pick_device(device: str | None = None) -> str:
@@ -71,22 +73,32 @@ class ViewReranker:
     def has_views(self) -> np.ndarray:
         return self._valid.any(dim=1).cpu().numpy()
 
-    def score(self, query: np.ndarray, mesh_idx: np.ndarray | None = None) -> Stage2Result:
-        """Scores of ``mesh_idx`` (all meshes when ``None``), in the given order."""
+    def score(
+        self, query: np.ndarray, mesh_idx: np.ndarray | None = None, per_view: bool = False
+    ) -> Stage2Result:
+        """Scores of ``mesh_idx`` (all meshes when ``None``), in the given order; ``per_view`` also returns
+        every view's score (the same matrix the max is taken over: no extra work but the copy)."""
         import torch
 
         t0 = time.perf_counter()
         n = self.n_meshes if mesh_idx is None else len(mesh_idx)
         if self._emb.shape[0] == 0 or n == 0:
-            return Stage2Result(np.full(n, -np.inf, np.float32), np.full(n, -1, np.int16), 0.0)
+            empty = np.zeros((n, 0), np.float32) if per_view else None
+            return Stage2Result(
+                np.full(n, -np.inf, np.float32),
+                np.full(n, -1, np.int16),
+                0.0,
+                empty,
+                None if empty is None else empty.astype(np.int16),
+            )
         q = torch.from_numpy(np.asarray(query, dtype=np.float32).reshape(-1)).to(self.device)
         if q.shape[0] != self.dim:
             raise ValueError(f"query vector has {q.shape[0]} dims, views have {self.dim}")
         with torch.inference_mode():
             if mesh_idx is None:
                 pad, valid = self._pad, self._valid
-                per_view = self._emb @ q  # every view once, then gathered per mesh
-                s = per_view[pad.clamp(min=0)]
+                every_view = self._emb @ q  # every view once, then gathered per mesh
+                s = every_view[pad.clamp(min=0)]
             else:
                 idx = torch.from_numpy(np.asarray(mesh_idx, dtype=np.int64)).to(self.device)
                 pad, valid = self._pad[idx], self._valid[idx]
@@ -97,4 +109,10 @@ class ViewReranker:
             view = torch.where(rows >= 0, self._view_index_t[rows.clamp(min=0)], torch.full_like(rows, -1))
             scores = best.float().cpu().numpy()
             views = view.cpu().numpy().astype(np.int16)
-        return Stage2Result(scores, views, time.perf_counter() - t0)
+            if per_view:
+                ids = torch.where(valid, self._view_index_t[pad.clamp(min=0)], torch.full_like(pad, -1))
+                all_scores = s.float().cpu().numpy()
+                all_ids = ids.cpu().numpy().astype(np.int16)
+        if not per_view:
+            return Stage2Result(scores, views, time.perf_counter() - t0)
+        return Stage2Result(scores, views, time.perf_counter() - t0, all_scores, all_ids)

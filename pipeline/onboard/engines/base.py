@@ -80,23 +80,14 @@ class Timer:
 
 
 def progress_bars(progress: bool, run: RunSpec, plan: Plan) -> dict:
-    """One tqdm bar per stage, sized by the meshes that need any of its steps."""
-    from tqdm.auto import tqdm
+    """Per-stage progress, sized by the meshes that need any of its steps: tqdm bars on a terminal,
+    plain lines in a cron log (:mod:`pipeline.progress`)."""
+    from pipeline.progress import stage_bars
 
     totals = {name: set() for name in STAGE_NAMES}
     for step in run.steps:
         totals[step.stage.name] |= plan.todo.get(step.key, set())
-    return {
-        k: tqdm(
-            total=len(ids),
-            desc=f"{k:<11}",
-            unit="mesh",
-            disable=not progress or not ids,
-            leave=True,
-            position=i,
-        )
-        for i, (k, ids) in enumerate(totals.items())
-    }
+    return stage_bars({k: len(ids) for k, ids in totals.items()}, unit="mesh", enabled=progress)
 
 
 class Engine:

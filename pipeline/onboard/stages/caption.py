@@ -37,7 +37,13 @@ class CaptionStage:
         from pipeline.mesh.render import decode_png
 
         model = self.model  # a model that cannot load ends the run (ModelLoadError), it is no mesh's fault
-        items = views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
+        from pipeline.mesh.cameras import is_captioned
+
+        items = [
+            it
+            for it in views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
+            if is_captioned(self.cfg.render, it["view_index"])  # the extra background view is stage 2 only
+        ]
         rows: list[dict] = []
         by_mesh: dict[str, list[dict]] = {}
         for it in items:
