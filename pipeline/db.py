@@ -15,6 +15,7 @@ Relations of a connection (see ``docs/analysts.md``):
 from __future__ import annotations
 
 from functools import cache
+from pathlib import Path
 
 import pyarrow as pa
 
