@@ -148,10 +148,10 @@ class SegmentCache:
             if s["file"] is None:
                 continue
             seg = segments[s["file"]]
-            hit = pc.is_in(_decoded_ids(seg), value_set=new_ids)
-            if not pc.any(hit).as_py():
+            hit = _rows_of(seg, new_ids)
+            if hit is None:
                 continue
-            rows = np.flatnonzero(hit.to_numpy(zero_copy_only=False))
+            rows = np.flatnonzero(hit)
             sub = seg.take(rows).select(["mesh_id", "view_index", "run_id"]).to_pylist()
             drop = []
             for i, r in zip(rows, sub, strict=True):
@@ -230,6 +230,20 @@ def _signature(ids: pa.Array) -> str:
         if buf is not None:
             h.update(memoryview(buf))
     return h.hexdigest()
+
+
+def _rows_of(seg: pa.Table, ids: pa.Array) -> np.ndarray | None:
+    """Boolean mask of the segment's rows whose ``mesh_id`` is in ``ids`` (``None`` when no row is),
+    computed on the dictionaries: no per-row string work."""
+    masks, any_hit = [], False
+    for chunk in seg.column("mesh_id").chunks:
+        in_dict = pc.is_in(chunk.dictionary, value_set=ids)
+        if not pc.any(in_dict).as_py():
+            masks.append(np.zeros(len(chunk), bool))
+            continue
+        any_hit = True
+        masks.append(in_dict.to_numpy(zero_copy_only=False)[chunk.indices.to_numpy(zero_copy_only=False)])
+    return np.concatenate(masks) if any_hit else None
 
 
 def _decoded_ids(seg: pa.Table) -> pa.Array:
