@@ -186,10 +186,12 @@ class SegmentCache:
             return _read_ipc(path).column("mesh_idx")
         seg = segments[s["file"]]
         col = seg.column("mesh_id")
-        out = []
+        out, done = [], {}
         for chunk in col.chunks:
-            pos = pc.index_in(chunk.dictionary, value_set=active_ids)
-            out.append(pos.take(chunk.indices))
+            key = _identity(chunk.dictionary)  # the chunks of one IPC file share their dictionary
+            if key not in done:
+                done[key] = pc.index_in(chunk.dictionary, value_set=active_ids)
+            out.append(done[key].take(chunk.indices))
         idx = pa.chunked_array(out, pa.int32()) if out else pa.chunked_array([], pa.int32())
         if idx.null_count:
             inactive = pc.unique(pc.filter(_decoded_ids(seg), pc.is_null(idx))).to_pylist()
@@ -232,12 +234,20 @@ def _signature(ids: pa.Array) -> str:
     return h.hexdigest()
 
 
+def _identity(arr: pa.Array) -> tuple:
+    """Identity of an array's memory (equal for chunks that share one dictionary)."""
+    return (len(arr), arr.offset, *(b.address if b is not None else 0 for b in arr.buffers()))
+
+
 def _rows_of(seg: pa.Table, ids: pa.Array) -> np.ndarray | None:
     """Boolean mask of the segment's rows whose ``mesh_id`` is in ``ids`` (``None`` when no row is),
     computed on the dictionaries: no per-row string work."""
-    masks, any_hit = [], False
+    masks, any_hit, done = [], False, {}
     for chunk in seg.column("mesh_id").chunks:
-        in_dict = pc.is_in(chunk.dictionary, value_set=ids)
+        key = _identity(chunk.dictionary)
+        if key not in done:
+            done[key] = pc.is_in(chunk.dictionary, value_set=ids)
+        in_dict = done[key]
         if not pc.any(in_dict).as_py():
             masks.append(np.zeros(len(chunk), bool))
             continue
