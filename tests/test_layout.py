@@ -68,7 +68,7 @@ def graph() -> tuple[dict[str, set[str]], list[str]]:
                     edges[mod].add(sub)
                 elif source in MODULES:
                     edges[mod].add(source)
-                    if a.name.startswith("_") and source != mod:
+                    if a.name.startswith("_") and not a.name.endswith("__") and source != mod:
                         private.append(f"{mod}: from {source} import {a.name}")
         edges[mod].discard(mod)
     return edges, private

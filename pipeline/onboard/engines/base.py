@@ -80,8 +80,8 @@ class Timer:
 
 
 def progress_bars(progress: bool, run: RunSpec, plan: Plan) -> dict:
-    """Per-stage progress, sized by the meshes that need any of its steps: tqdm bars on a terminal,
-    plain lines in a cron log (:mod:`pipeline.progress`)."""
+    """One bar per stage, sized by the meshes that need any of its steps: tqdm bars on a terminal, plain
+    per-stage lines in a cron log (:mod:`pipeline.progress`)."""
     from pipeline.progress import stage_bars
 
     totals = {name: set() for name in STAGE_NAMES}
