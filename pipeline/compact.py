@@ -45,7 +45,7 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
         if before > 1:
             dt.optimize.compact(writer_properties=_props())
         rows = store.read(dataset, columns=["run_id"]).num_rows
-    store._tables.pop(dataset, None)  # reload at the new version
+    store.refresh(dataset)  # reload at the new version
     return {
         "files_before": before,
         "files_after": len(store.files(dataset)),
@@ -79,9 +79,9 @@ def auto_compact(store: Store, run_id: str, threshold: int = AUTO_COMPACT_FILES)
 
 
 def _props():
-    from pipeline.store import _writer_properties
+    from pipeline.store import writer_properties
 
-    return _writer_properties()
+    return writer_properties()
 
 
 def main(argv: list[str] | None = None) -> int:

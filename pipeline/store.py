@@ -181,9 +181,12 @@ class Store:
             ) from None
         self._lock_fd = fd
 
-    def refresh(self) -> None:
-        """Forget pinned table versions: the next read sees the latest commits."""
-        self._tables.clear()
+    def refresh(self, dataset: str | None = None) -> None:
+        """Forget pinned table versions (of one ``dataset`` or all): the next read sees the latest commits."""
+        if dataset is None:
+            self._tables.clear()
+        else:
+            self._tables.pop(dataset, None)
 
     # ----------------------------------------------------------------- tables
     def path_of(self, dataset: str) -> Path:
@@ -374,7 +377,7 @@ class Store:
                 target,
                 table,
                 mode=mode,
-                writer_properties=_writer_properties(),
+                writer_properties=writer_properties(),
                 commit_properties=CommitProperties(custom_metadata={"oscar_run_id": run_id}),
                 **extra,
             )
@@ -450,7 +453,8 @@ def _bad_log_file(log: Path, parse: bool = True) -> Path:
     return log
 
 
-def _writer_properties():
+def writer_properties():
+    """Parquet settings of every data file the store writes (zstd, 8192-row groups)."""
     from deltalake import WriterProperties
 
     return WriterProperties(compression="ZSTD", max_row_group_size=8192)
