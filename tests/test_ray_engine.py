@@ -67,12 +67,12 @@ class Interrupt:
         self.n, self.calls = n, 0
         real = Store.commit
 
-        def commit(store, tables, run_id, removes=None):
+        def commit(store, tables, run_id):
             if "runs" not in tables:
                 self.calls += 1
                 if self.calls > self.n:
                     raise KeyboardInterrupt
-            return real(store, tables, run_id, removes)
+            return real(store, tables, run_id)
 
         monkeypatch.setattr(Store, "commit", commit)
 

@@ -59,6 +59,10 @@ def run_onboarding(
             "status": summary.status,
         }
         try:
+            if summary.status == "ok":
+                from pipeline.compact import auto_compact
+
+                auto_compact(store, run_id)  # tables whose small files piled up; the run's row still last
             store.commit({"runs": pa.Table.from_pylist([row], schema=schemas.RUNS)}, run_id)
         except Exception:
             if summary.status == "ok":  # the run's own error (if any) is the one to report

@@ -62,6 +62,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the one folder COPY ... TO may write to (created; must be outside the store); "
         "without it SQL cannot write files at all",
     )
+    p.add_argument(
+        "--as-of",
+        metavar="VERSION|TIME",
+        help="time travel: the store as it was right after version VERSION of its runs table (one "
+        "commit per onboarding run; `python -m pipeline.fsck STORE` lists them) or at an ISO time",
+    )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
     return p
@@ -80,17 +86,17 @@ def _variables(items: list[str]) -> dict[str, str]:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pipeline.cli_common import fail
-    from pipeline.db import audit_names, open_store
-    from pipeline.store import Store, StoreError
+    from pipeline.db import RemoteStore, audit_names, open_store
+    from pipeline.store import StoreError
 
     if args.list_audits:
         print("\n".join(audit_names()))
         return 0
     try:
-        store = open_store(args.store)
+        store = open_store(args.store, as_of=args.as_of)
     except (StoreError, OSError, ValueError) as exc:
         return fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
-    if (args.init_script or args.duckdb_cli) and not isinstance(store, Store):
+    if (args.init_script or args.duckdb_cli) and isinstance(store, RemoteStore):
         return fail("--init-script and --duckdb-cli need a local store; use --export-duckdb for a remote one")
     if args.init_script:
         from pipeline.sql.export import init_script
@@ -128,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
     try:
         con = connect(store)
+    except StoreError as exc:
+        return fail(str(exc))
     except (OSError, ValueError, RuntimeError, duckdb.Error) as exc:  # a damaged or vanished store file
         return fail(f"cannot read the store {args.store}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     confine(con, export_dir)  # after every relation and view is registered
