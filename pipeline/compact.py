@@ -1,32 +1,130 @@
-"""``python -m pipeline.compact STORE``: merge each table's parts into one and drop superseded rows.
+"""``python -m pipeline.compact STORE``: compact every table, drop superseded rows, vacuum old files.
 
-Superseded rows are those with the same key as a later row (``--force`` re-runs, retried meshes). Runs
-under the store's writer lock, so it never races an onboarding run; readers keep working throughout
-because the old parts stay valid until the commit that replaces them.
+Per table: when some rows are superseded (same key as a later row: ``--force`` re-runs, retried meshes)
+the table is rewritten with its latest rows (one Delta overwrite commit); otherwise Delta's ``optimize``
+merges its small files. Then ``vacuum`` deletes the files that the log marked as removed more than
+``--retention-hours`` ago (default 7 days): a reader that opened an older snapshot keeps answering until
+then. Vacuum only deletes files the log names as removed, never files it merely does not know, and it
+runs only on tables whose files all check out. Runs under the store's writer lock.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
+from pathlib import Path
 
-from pipeline.cli_common import fail
+from pipeline import schemas
+from pipeline.cli_common import OneLineParser, fail, float_range
+from pipeline.store import Store, io_error_message, new_run_id, os_error_of, table_of
+
+DEFAULT_RETENTION_HOURS = 7 * 24
+#: a run compacts a table automatically once it has this many files under SMALL_FILE_BYTES
+AUTO_COMPACT_FILES = 64
+SMALL_FILE_BYTES = 16 * 1024 * 1024
+
+
+def superseded(store: Store, dataset: str) -> int:
+    """Number of rows of ``dataset`` that a later row with the same key replaces."""
+    key = list(schemas.KEYS.get(table_of(dataset), ()))
+    if not key:
+        return 0
+    t = store.read(dataset, columns=key)
+    return t.num_rows - t.group_by(key, use_threads=False).aggregate([]).num_rows
+
+
+def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
+    """Compact one dataset; return ``{"files_before", "files_after", "rows", "dropped"}``."""
+    before = len(store.files(dataset))
+    dropped = superseded(store, dataset)
+    if dropped:
+        latest = store.read_latest(dataset)
+        store.append(dataset, latest, run_id, mode="overwrite")
+        rows = latest.num_rows
+    else:
+        dt = store.delta(dataset)
+        if before > 1:
+            dt.optimize.compact(writer_properties=_props())
+        rows = store.read(dataset, columns=["run_id"]).num_rows
+    store.refresh(dataset)  # reload at the new version
+    return {
+        "files_before": before,
+        "files_after": len(store.files(dataset)),
+        "rows": rows,
+        "dropped": dropped,
+    }
+
+
+def vacuum_dataset(store: Store, dataset: str, retention_hours: float, orphans: bool = False) -> int:
+    """Delete files the log removed more than ``retention_hours`` ago (with ``orphans``, also files no
+    commit names that are that old: left by killed writers); return how many."""
+    store.check_files(dataset)  # never act on a log whose files do not check out
+    dt = store.delta(dataset)
+    gone = dt.vacuum(
+        retention_hours=int(retention_hours),
+        dry_run=False,
+        enforce_retention_duration=False,
+        full=orphans,
+    )
+    return len(gone)
+
+
+def auto_compact(store: Store, run_id: str, threshold: int = AUTO_COMPACT_FILES) -> list[str]:
+    """Compact the datasets with more than ``threshold`` small files (no vacuum); return their names."""
+    done = []
+    for dataset in store.all_datasets():
+        if store.small_files(dataset, SMALL_FILE_BYTES) > threshold:
+            compact_dataset(store, dataset, run_id)
+            done.append(dataset)
+    return done
+
+
+def _props():
+    from pipeline.store import writer_properties
+
+    return writer_properties()
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
     p.add_argument("store", metavar="STORE")
+    p.add_argument(
+        "--retention-hours",
+        type=float_range(0.0),
+        default=DEFAULT_RETENTION_HOURS,
+        help="vacuum files removed longer ago than this (default: %(default)s = 7 days); "
+        "readers that opened the store earlier than this may fail afterwards",
+    )
+    p.add_argument("--no-vacuum", action="store_true", help="compact only; delete no files")
+    p.add_argument(
+        "--remove-orphans",
+        action="store_true",
+        help="also delete data files no commit names (left by killed writers) older than the retention; "
+        "run `python -m pipeline.fsck STORE` first: a lost log entry makes committed files look orphaned",
+    )
     args = p.parse_args(argv)
-    from pipeline.store import Store, StoreError
+    from pipeline.store import StoreError
 
+    run_id = new_run_id()
     try:
         with Store.open(args.store, writable=True) as store:
-            before = {d: len(store.parts(d)) for d in list(store._snap.parts)}
-            kept = store.compact()
+            for dataset in store.all_datasets():
+                r = compact_dataset(store, dataset, run_id)
+                vac = (
+                    0
+                    if args.no_vacuum
+                    else vacuum_dataset(store, dataset, args.retention_hours, args.remove_orphans)
+                )
+                print(
+                    f"{dataset}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows "
+                    f"({r['dropped']} superseded dropped), {vac} old files vacuumed"
+                )
     except StoreError as exc:
         return fail(str(exc))
-    for dataset, rows in sorted(kept.items()):
-        print(f"{dataset}: {before.get(dataset, 0)} parts -> 1, {rows} rows")
+    except Exception as exc:  # noqa: BLE001 - delta-rs reports a full disk as DeltaError "(os error 28)"
+        err = os_error_of(exc)
+        if err is None:
+            raise
+        return fail(io_error_message(err, Path(args.store), "commit"))
     return 0
 
 

@@ -15,6 +15,7 @@ Relations of a connection (see ``docs/analysts.md``):
 from __future__ import annotations
 
 from functools import cache
+from pathlib import Path
 
 import pyarrow as pa
 
@@ -48,7 +49,10 @@ def any_encoder_schema() -> pa.Schema:
 
 
 def store_relations(store: Store) -> dict[str, object]:
-    """Every relation of :func:`connect` except the views: name -> Arrow dataset or (empty) table."""
+    """Every relation of :func:`connect` except the views: name -> Arrow dataset or (empty) table.
+
+    Each dataset is the store's pinned Delta snapshot (``DeltaTable.to_pyarrow_dataset``), so a
+    connection keeps answering from the same files while later runs commit or compact."""
     import pyarrow.dataset as ds
 
     out: dict[str, object] = {}
@@ -56,82 +60,95 @@ def store_relations(store: Store) -> dict[str, object]:
         d = store.dataset(table)
         out[relation_name(table)] = d if d is not None else schema.empty_table()
     for table in schemas.EMBEDDING_TABLES:
-        files: list[str] = []
+        parts: list[ds.Dataset] = []
         for dataset in store.datasets(table):
             d = store.dataset(dataset)
             if d is not None:
                 out[relation_name(dataset)] = d
-                files.extend(str(p) for p in store.parts(dataset))
+                parts.append(store.dataset(dataset, schema=any_encoder_schema()))
         schema = any_encoder_schema()
-        fs = getattr(store, "filesystem", None)  # set for stores read through a pyarrow filesystem
-        out[relation_name(table)] = (
-            ds.dataset(files, format="parquet", schema=schema, filesystem=fs)
-            if files
-            else schema.empty_table()
-        )
+        out[relation_name(table)] = _union(parts, schema) if parts else schema.empty_table()
     return out
 
 
-class RemoteStore:
-    """Read-only view of a store copied to object storage (``s3://``, ``gs://``, ``abfs://``, ``hdfs://``,
-    ``file://``), read through a pyarrow filesystem: the commit log names the parts, as in :class:`Store`.
+def _union(parts: list, schema: pa.Schema):
+    """One dataset over every encoder's table, vectors as variable-length lists."""
+    import pyarrow.dataset as ds
 
-    Offers what :func:`connect` needs (``datasets``, ``parts``, ``dataset``); writing needs a local store.
-    """
+    return ds.dataset(parts) if len(parts) > 1 else parts[0]
 
-    def __init__(self, filesystem, root: str, parts: dict[str, list[str]]):
-        self.filesystem, self.root, self._parts = filesystem, root.rstrip("/"), parts
+
+class RemoteStore(Store):
+    """Read-only store in object storage (``s3://``, ``gs://``, ``abfs://``, ``file://``), read through
+    ``deltalake`` with credentials from the usual environment of each service."""
+
+    def __init__(self, uri: str):
+        super().__init__(Path(uri), writable=False)
+        self.uri = uri.rstrip("/")
 
     @classmethod
-    def open(cls, uri: str, filesystem=None) -> RemoteStore:
-        """Open the store at ``uri`` (credentials come from the usual environment of each filesystem)."""
-        import json
-
+    def open(cls, uri: str) -> RemoteStore:  # type: ignore[override]
         from pyarrow import fs
 
-        from pipeline.store import LOG_DIR, STORE_MARKER, StoreError
+        from pipeline.store import STORE_MARKER, StoreError
 
-        if filesystem is None:
-            filesystem, root = fs.FileSystem.from_uri(uri)
-        else:
-            root = uri
+        filesystem, root = fs.FileSystem.from_uri(uri)
         if filesystem.get_file_info(f"{root}/{STORE_MARKER}").type == fs.FileType.NotFound:
             raise StoreError(f"no OSCAR store at {uri} (no {STORE_MARKER})")
-        entries = filesystem.get_file_info(fs.FileSelector(f"{root}/{LOG_DIR}", allow_not_found=True))
-        parts: dict[str, list[str]] = {}
-        for path in sorted(e.path for e in entries if e.path.endswith(".json")):
-            with filesystem.open_input_stream(path) as f:
-                entry = json.loads(f.read())
-            for dataset, gone in entry.get("removes", {}).items():
-                parts[dataset] = [p for p in parts.get(dataset, []) if p not in set(gone)]
-            for dataset, added in entry.get("adds", {}).items():
-                parts.setdefault(dataset, []).extend(added)
-        return cls(filesystem, root, parts)
+        store = cls(uri)
+        store.filesystem, store._fs_root = filesystem, root.rstrip("/")
+        return store
+
+    def path_of(self, dataset: str):
+        return _RemotePath(f"{self.uri}/{dataset}")
 
     def datasets(self, table: str) -> list[str]:
+        from pyarrow import fs
+
         if table in schemas.EMBEDDING_TABLES:
-            return sorted(d for d in self._parts if d.startswith(table + "/") and self._parts[d])
-        return [table] if self._parts.get(table) else []
+            entries = self.filesystem.get_file_info(
+                fs.FileSelector(f"{self._fs_root}/{table}", allow_not_found=True)
+            )
+            names = sorted(f"{table}/{e.base_name}" for e in entries if e.type == fs.FileType.Directory)
+        else:
+            names = [table]
+        return [d for d in names if self.delta(d) is not None]
 
-    def parts(self, dataset: str) -> list[str]:
-        return [f"{self.root}/{p}" for p in self._parts.get(dataset, [])]
+    def delta(self, dataset: str):
+        if dataset not in self._tables:
+            from deltalake import DeltaTable
 
-    def dataset(self, dataset: str):
-        import pyarrow.dataset as ds
+            try:
+                self._tables[dataset] = DeltaTable(f"{self.uri}/{dataset}")
+            except Exception:  # noqa: BLE001 - no table there
+                self._tables[dataset] = None
+        return self._tables[dataset]
 
-        files = self.parts(dataset)
-        if not files:
-            return None
-        table = dataset.split("/", 1)[0]
-        schema = schemas.TABLES.get(table) if table in schemas.TABLES else None
-        return ds.dataset(files, format="parquet", schema=schema, filesystem=self.filesystem)
+    def check_files(self, dataset: str) -> None:
+        """Object stores are checked by ``pipeline.fsck`` on a local copy, not on every open."""
+
+    def files(self, dataset: str):
+        dt = self.delta(dataset)
+        if dt is None:
+            return []
+        add = dt.get_add_actions(flatten=True)
+        return list(zip(dt.file_uris(), add.column("size_bytes").to_pylist(), strict=False))
 
 
-def open_store(location: str):
+class _RemotePath(str):
+    def __truediv__(self, other: str) -> _RemotePath:
+        return _RemotePath(f"{self}/{other}")
+
+
+def open_store(location: str, as_of=None):
     """A local :class:`Store` (read-only) for a path, a :class:`RemoteStore` for a URI with a scheme."""
     if "://" in location:
+        if as_of is not None:
+            from pipeline.store import StoreError
+
+            raise StoreError("--as-of needs a local store")
         return RemoteStore.open(location)
-    return Store.open(location)
+    return Store.open(location, as_of=as_of)
 
 
 def view_names() -> list[str]:

@@ -1,15 +1,19 @@
-"""The store: a directory of Parquet datasets with an append-only commit log.
+"""The store: a directory of Delta Lake tables (Parquet data files + ``_delta_log``), written with ``deltalake``.
 
 Layout::
 
-    STORE/_log/000000000017.json      one commit: the parts it adds (and, for compact, removes)
-    STORE/meshes/part-<run>-<n>.parquet
-    STORE/text_embeddings/<encoder_slug>/part-<run>-<n>.parquet
-    ...
+    STORE/_oscar_store.json                       {"format_version": 2, "format": "delta"}
+    STORE/meshes/_delta_log/00000000000000000000.json
+    STORE/meshes/part-00000-<uuid>-c000.zstd.parquet
+    STORE/text_embeddings/<encoder_slug>/...      one Delta table per encoder (own vector width)
+    STORE/runs/...                                one row per onboarding run, committed last
 
-A commit writes every part to a temp file, renames it into place, then writes the log entry with a
-temp file + rename. Readers only see parts named by log entries, so a writer killed at any point
-leaves nothing half-visible; the next writer deletes the orphans. One writer at a time (``_lock``).
+Every commit is one Delta transaction on one table. :meth:`Store.commit` writes the tables of a batch in
+:data:`TABLE_ORDER` (upstream first, ``runs`` last); rows are keyed by (``mesh_id``, stage fingerprint)
+and the latest ``run_id`` per key wins, so a writer killed between two tables' commits leaves only work
+the next run redoes (or rows that readers dedupe). A reader pins each table's version when it first
+touches it; compaction never deletes the files of a pinned snapshot before the vacuum retention period.
+One writer at a time (``_lock``); a second one gets a clear error.
 """
 
 from __future__ import annotations
@@ -19,26 +23,39 @@ import json
 import os
 import re
 import uuid
-from collections.abc import Iterable
-from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.dataset as ds
-import pyarrow.parquet as pq
 
 from pipeline import schemas
 
-LOG_DIR = "_log"
 LOCK_FILE = "_lock"
 STORE_MARKER = "_oscar_store.json"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+LEGACY_LOG_DIR = "_log"  # format 1 (hand-made commit log); read only by pipeline.migrate
+DELTA_LOG = "_delta_log"
+#: commit order inside one batch: upstream tables first, the run's record last
+TABLE_ORDER = (
+    "meshes",
+    "views",
+    "captions",
+    "text_embeddings",
+    "image_embeddings",
+    "view_features",
+    "errors",
+    "runs",
+)
 
 
 class StoreError(RuntimeError):
     """The store is missing, locked, or not an OSCAR store."""
+
+
+class StoreCorruptError(StoreError):
+    """A file the store's log references is missing, truncated or not what the log says (one line)."""
 
 
 def slug(text: str) -> str:
@@ -56,29 +73,82 @@ def utcnow() -> datetime:
     return datetime.now(timezone.utc)
 
 
-@dataclass
-class _Snapshot:
-    parts: dict[str, list[str]] = field(
-        default_factory=dict
-    )  # dataset ("views", "text_embeddings/x") -> rel paths
-    seq: int = 0
+def table_of(dataset: str) -> str:
+    """``text_embeddings/x`` -> ``text_embeddings``; ``views`` -> ``views``."""
+    return dataset.split("/", 1)[0]
+
+
+def expected_schema(dataset: str, dim: int | None) -> pa.Schema | None:
+    """The explicit schema of a dataset (``None`` for an embedding table of unknown width)."""
+    table = table_of(dataset)
+    if table in schemas.TABLES:
+        return schemas.TABLES[table]
+    return schemas.embedding_schema(dim) if dim else None
+
+
+def delta_schema(schema: pa.Schema) -> pa.Schema:
+    """``schema`` with fixed-size lists as plain lists: how Delta (and Spark, polars) type an array.
+    Readers of this project cast them back to the fixed widths of :func:`expected_schema`."""
+
+    def plain(t: pa.DataType) -> pa.DataType:
+        if pa.types.is_fixed_size_list(t):
+            return pa.list_(plain(t.value_type))
+        if pa.types.is_list(t):
+            return pa.list_(plain(t.value_type))
+        if pa.types.is_struct(t):
+            return pa.struct([f.with_type(plain(f.type)) for f in t])
+        return t
+
+    return pa.schema([f.with_type(plain(f.type)) for f in schema], metadata=schema.metadata)
+
+
+def _order(dataset: str) -> tuple[int, str]:
+    t = table_of(dataset)
+    return (TABLE_ORDER.index(t) if t in TABLE_ORDER else len(TABLE_ORDER), dataset)
+
+
+def corrupt(store_root, what: str) -> StoreCorruptError:
+    """The one-line error for a damaged store (``what`` names the file)."""
+    return StoreCorruptError(
+        f"{what}; run `python -m pipeline.fsck {store_root}` for a full check and repair"
+    )
 
 
 class Store:
     """Handle on a store directory. Use :meth:`open`; call :meth:`close` (or use ``with``)."""
 
-    def __init__(self, root: Path, writable: bool):
+    def __init__(self, root: Path, writable: bool, as_of: datetime | None = None):
         self.root = root
         self.writable = writable
+        self.as_of = as_of
         self._lock_fd: int | None = None
-        self._snap = _Snapshot()
-        self._part_counter = 0
+        self._tables: dict[str, object] = {}  # dataset -> DeltaTable (pinned at first use) or None
+        self._files: dict[tuple[str, int], list[tuple[Path, int]]] = {}  # (dataset, version) -> files
 
     # ----------------------------------------------------------------- opening
     @classmethod
-    def open(cls, path: str | os.PathLike, *, create: bool = False, writable: bool = False) -> Store:
-        """Open the store at ``path``; ``create`` makes it if missing (implies writable)."""
+    def open(
+        cls,
+        path: str | os.PathLike,
+        *,
+        create: bool = False,
+        writable: bool = False,
+        as_of: int | str | datetime | None = None,
+    ) -> Store:
+        """Open the store at ``path``; ``create`` makes it if missing (implies writable).
+
+        ``as_of`` (read-only) pins every table to the store's state after a ``runs`` table version
+        (int) or at a time (``datetime`` or ISO text): Delta time travel."""
         root = Path(path)
+        if root.exists() and not root.is_dir():
+            raise StoreError(f"store path {root} is a file, not a store directory")
+        try:
+            return cls._open(root, create, writable, as_of)
+        except OSError as exc:
+            raise StoreError(io_error_message(exc, root, "open")) from None
+
+    @classmethod
+    def _open(cls, root: Path, create: bool, writable: bool, as_of: int | str | datetime | None) -> Store:
         marker = root / STORE_MARKER
         if not marker.exists():
             if not create:
@@ -90,12 +160,15 @@ class Store:
             root.mkdir(parents=True, exist_ok=True)
             if any(p.name != LOCK_FILE for p in root.iterdir()):
                 raise StoreError(f"{root} exists, is not empty and is not an OSCAR store")
-            _atomic_write_text(marker, json.dumps({"format_version": FORMAT_VERSION}))
+            _atomic_write_text(marker, json.dumps({"format_version": FORMAT_VERSION, "format": "delta"}))
+        check_format(root)
+        if as_of is not None and (writable or create):
+            raise StoreError("--as-of opens a store read-only")
         store = cls(root, writable or create)
+        if as_of is not None:
+            store.as_of = store._resolve_as_of(as_of)
         if store.writable:
             store._acquire_lock()
-            store._remove_orphans()
-        store.refresh()
         return store
 
     def __enter__(self) -> Store:
@@ -111,7 +184,10 @@ class Store:
             self._lock_fd = None
 
     def _acquire_lock(self) -> None:
-        fd = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fd = os.open(self.root / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StoreError(f"cannot write to store {self.root}: {exc.strerror}") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -121,61 +197,136 @@ class Store:
             ) from None
         self._lock_fd = fd
 
-    # ----------------------------------------------------------------- log
-    def refresh(self) -> None:
-        """Re-read the commit log (cheap: one small JSON file per commit)."""
-        snap = _Snapshot()
-        log = self.root / LOG_DIR
-        if log.exists():
-            for entry in sorted(log.glob("*.json")):
-                data = json.loads(entry.read_text())
-                for dataset in data.get("removes", {}):
-                    gone = set(data["removes"][dataset])
-                    snap.parts[dataset] = [p for p in snap.parts.get(dataset, []) if p not in gone]
-                for dataset, parts in data.get("adds", {}).items():
-                    snap.parts.setdefault(dataset, []).extend(parts)
-                snap.seq = max(snap.seq, int(entry.stem))
-        self._snap = snap
+    def refresh(self, dataset: str | None = None) -> None:
+        """Forget pinned table versions (of one ``dataset`` or all): the next read sees the latest commits."""
+        if dataset is None:
+            self._tables.clear()
+        else:
+            self._tables.pop(dataset, None)
 
-    def _committed_files(self) -> set[str]:
-        return {p for parts in self._snap.parts.values() for p in parts}
+    # ----------------------------------------------------------------- tables
+    def path_of(self, dataset: str) -> Path:
+        return self.root / dataset
 
-    def _remove_orphans(self) -> None:
-        """Delete part and temp files no commit names (left by a killed writer)."""
-        self.refresh()
-        keep = self._committed_files()
-        for path in self.root.rglob("*"):
-            if not path.is_file():
-                continue
-            rel = path.relative_to(self.root).as_posix()
-            if path.name.endswith(".tmp") or (path.suffix == ".parquet" and rel not in keep):
-                path.unlink(missing_ok=True)
-
-    # ----------------------------------------------------------------- reading
     def datasets(self, table: str) -> list[str]:
         """Dataset names of ``table``: itself, or ``table/<encoder_slug>`` for embedding tables."""
         if table in schemas.EMBEDDING_TABLES:
-            return sorted(d for d in self._snap.parts if d.startswith(table + "/"))
-        return [table] if table in self._snap.parts else []
+            base = self.root / table
+            if not base.is_dir():
+                return []
+            names = [f"{table}/{p.name}" for p in sorted(base.iterdir()) if (p / DELTA_LOG).is_dir()]
+            return [d for d in names if self.delta(d) is not None]
+        return [table] if self.delta(table) is not None else []
+
+    def all_datasets(self) -> list[str]:
+        """Every dataset of the store, in commit order."""
+        out: list[str] = []
+        for table in TABLE_ORDER:
+            out.extend(self.datasets(table))
+        return out
+
+    def delta(self, dataset: str):
+        """The dataset's ``DeltaTable`` at this handle's pinned version (``None`` when absent)."""
+        if dataset in self._tables:
+            return self._tables[dataset]
+        path = self.path_of(dataset)
+        dt = None
+        if (path / DELTA_LOG).is_dir():
+            dt = self._load(dataset, path)
+        self._tables[dataset] = dt
+        return dt
+
+    def _load(self, dataset: str, path: Path):
+        from deltalake import DeltaTable
+
+        log = path / DELTA_LOG
+        if not any(log.iterdir()):
+            return None  # created, never committed (a writer killed before its first commit)
+        try:
+            dt = DeltaTable(str(path))
+        except Exception as exc:  # noqa: BLE001 - deltalake raises several error types
+            raise corrupt(
+                self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})"
+            ) from None
+        gap = _bad_log_file(log, parse=False)  # delta-rs reads past a missing commit file silently
+        if gap != log:
+            raise corrupt(self.root, f"{gap}: missing Delta log entry (table {dataset})")
+        if self.as_of is not None:
+            try:
+                dt.load_as_version(self.as_of)
+            except Exception:  # noqa: BLE001 - the table did not exist yet at that time
+                return None
+        return dt
+
+    def version(self, dataset: str) -> int | None:
+        """The pinned Delta version of ``dataset`` (``None`` when absent)."""
+        dt = self.delta(dataset)
+        return None if dt is None else dt.version()
+
+    def versions(self) -> dict[str, int]:
+        """Dataset -> pinned version, for every dataset of the store."""
+        return {d: self.version(d) for d in self.all_datasets()}
+
+    def _dim(self, dataset: str, dt) -> int | None:
+        try:
+            return int(json.loads(dt.metadata().description or "{}").get("dim") or 0) or None
+        except (ValueError, TypeError):
+            return None
+
+    def schema(self, dataset: str) -> pa.Schema | None:
+        """The explicit schema of ``dataset`` (fixed-width vectors for embedding tables)."""
+        dt = self.delta(dataset)
+        return expected_schema(dataset, self._dim(dataset, dt) if dt is not None else None)
+
+    def files(self, dataset: str) -> list[tuple[Path, int]]:
+        """(absolute path, size in bytes) of every data file of the pinned version."""
+        dt = self.delta(dataset)
+        if dt is None:
+            return []
+        key = (dataset, dt.version())
+        if key not in self._files:
+            add = dt.get_add_actions(flatten=True)
+            paths = add.column("path").to_pylist()
+            sizes = add.column("size_bytes").to_pylist()
+            base = self.path_of(dataset)
+            self._files[key] = [(base / p, int(s)) for p, s in zip(paths, sizes, strict=True)]
+        return self._files[key]
 
     def parts(self, dataset: str) -> list[Path]:
-        """Absolute paths of the committed parts of ``dataset``."""
-        return [self.root / p for p in self._snap.parts.get(dataset, [])]
+        """Absolute paths of the data files of ``dataset``'s pinned version."""
+        return [p for p, _ in self.files(dataset)]
 
-    def dataset(self, dataset: str) -> ds.Dataset | None:
-        """A pyarrow dataset over the committed parts (``None`` when empty)."""
-        files = self.parts(dataset)
-        if not files:
+    def check_files(self, dataset: str) -> None:
+        """Raise :class:`StoreCorruptError` naming the first data file that is missing or has the wrong size."""
+        dt = self.delta(dataset)
+        for path, size in self.files(dataset):
+            try:
+                actual = path.stat().st_size
+            except FileNotFoundError:
+                raise corrupt(
+                    self.root, f"store file {path} is missing (table {dataset}, version {dt.version()})"
+                ) from None
+            if actual != size:
+                raise corrupt(
+                    self.root,
+                    f"store file {path} is damaged: {actual} bytes, its Delta log says {size} "
+                    f"(table {dataset}, version {dt.version()})",
+                )
+
+    # ----------------------------------------------------------------- reading
+    def dataset(self, dataset: str, schema: pa.Schema | None = None) -> ds.Dataset | None:
+        """A pyarrow dataset over the pinned snapshot (``None`` when absent or empty), read with the
+        dataset's explicit schema or ``schema``."""
+        dt = self.delta(dataset)
+        if dt is None:
             return None
-        return ds.dataset(
-            [str(f) for f in files], format="parquet", schema=self._schema_of(dataset, files[0])
-        )
-
-    def _schema_of(self, dataset: str, first: Path) -> pa.Schema:
-        table = dataset.split("/", 1)[0]
-        if table in schemas.TABLES:
-            return schemas.TABLES[table]
-        return pq.read_schema(first)
+        self.check_files(dataset)
+        if not self.files(dataset):
+            return None
+        try:
+            return dt.to_pyarrow_dataset(schema=schema or self.schema(dataset))
+        except Exception as exc:  # noqa: BLE001
+            raise corrupt(self.root, f"table {self.path_of(dataset)}: {_first_line(exc)}") from None
 
     def read(
         self, dataset: str, columns: list[str] | None = None, filter: ds.Expression | None = None
@@ -183,85 +334,218 @@ class Store:
         """Read a dataset (all committed rows, including superseded ones; see :meth:`read_latest`)."""
         d = self.dataset(dataset)
         if d is None:
-            table = dataset.split("/", 1)[0]
-            schema = schemas.TABLES.get(table) or schemas.embedding_schema(1)
+            schema = self.schema(dataset) or expected_schema(dataset, 1)
             empty = schema.empty_table()
             return empty.select(columns) if columns else empty
-        return d.to_table(columns=columns, filter=filter)
+        try:
+            return d.to_table(columns=columns, filter=filter)
+        except (OSError, pa.ArrowException) as exc:
+            raise corrupt(self.root, f"table {self.path_of(dataset)}: {_first_line(exc)}") from None
 
     def read_latest(
         self, dataset: str, columns: list[str] | None = None, filter: ds.Expression | None = None
     ) -> pa.Table:
         """Read a dataset keeping only the latest row (highest ``run_id``) per key."""
-        table_name = dataset.split("/", 1)[0]
-        key = list(schemas.KEYS.get(table_name, ()))
+        key = list(schemas.KEYS.get(table_of(dataset), ()))
         if not key:
             return self.read(dataset, columns, filter)
         need = list(dict.fromkeys((columns or []) + key + ["run_id"])) if columns else None
-        t = self.read(dataset, need, filter)
-        t = latest_rows(t, key)
+        t = latest_rows(self.read(dataset, need, filter), key)
         return t.select(columns) if columns else t
 
     # ----------------------------------------------------------------- writing
-    def commit(
-        self,
-        tables: dict[str, pa.Table],
-        run_id: str,
-        removes: dict[str, Iterable[str]] | None = None,
-    ) -> int:
-        """Atomically add ``tables`` (dataset name -> rows) as new parts; return the commit sequence."""
+    def commit(self, tables: dict[str, pa.Table | None], run_id: str) -> int:
+        """Append ``tables`` (dataset name -> rows), one Delta commit per non-empty table, upstream tables
+        first and ``runs`` last; return the number of tables committed."""
         if not self.writable:
             raise StoreError("store opened read-only")
-        adds: dict[str, list[str]] = {}
-        for dataset, table in tables.items():
+        try:
+            return self._commit(tables, run_id)
+        except OSError as exc:
+            raise StoreError(io_error_message(exc, self.root, "commit")) from None
+
+    def _commit(self, tables: dict[str, pa.Table | None], run_id: str) -> int:
+        n = 0
+        for dataset in sorted(tables, key=_order):
+            table = tables[dataset]
             if table is None or table.num_rows == 0:
                 continue
-            rel = self._write_part(dataset, table, run_id)
-            adds.setdefault(dataset, []).append(rel)
-        removes_d = {k: sorted(v) for k, v in (removes or {}).items() if v}
-        if not adds and not removes_d:
-            return self._snap.seq
-        seq = self._snap.seq + 1
-        entry = {"seq": seq, "run_id": run_id, "at": utcnow().isoformat(), "adds": adds, "removes": removes_d}
-        log = self.root / LOG_DIR
-        log.mkdir(exist_ok=True)
-        _atomic_write_text(log / f"{seq:012d}.json", json.dumps(entry))
-        for dataset, rels in removes_d.items():
-            gone = set(rels)
-            self._snap.parts[dataset] = [p for p in self._snap.parts.get(dataset, []) if p not in gone]
-        for dataset, rels in adds.items():
-            self._snap.parts.setdefault(dataset, []).extend(rels)
-        self._snap.seq = seq
-        return seq
+            self.append(dataset, table, run_id)
+            n += 1
+        return n
 
-    def _write_part(self, dataset: str, table: pa.Table, run_id: str) -> str:
-        table_name = dataset.split("/", 1)[0]
-        if table_name in schemas.TABLES:
-            table = schemas.conform(table, schemas.TABLES[table_name])
-        directory = self.root / dataset
-        directory.mkdir(parents=True, exist_ok=True)
-        self._part_counter += 1
-        name = f"part-{run_id}-{self._part_counter:05d}.parquet"
-        tmp = directory / (name + ".tmp")
-        pq.write_table(table, tmp, compression="zstd", row_group_size=8192)
-        _fsync(tmp)
-        os.replace(tmp, directory / name)
-        return f"{dataset}/{name}"
+    def append(self, dataset: str, table: pa.Table, run_id: str, *, mode: str = "append") -> None:
+        """One Delta commit adding ``table``'s rows to ``dataset`` (``mode="overwrite"`` replaces them)."""
+        from deltalake import CommitProperties, write_deltalake
 
-    def compact(self, run_id: str | None = None) -> dict[str, int]:
-        """Merge each dataset's parts into one, dropping superseded rows; return rows kept per dataset."""
-        run_id = run_id or new_run_id()
-        kept: dict[str, int] = {}
-        for dataset in list(self._snap.parts):
-            old = list(self._snap.parts[dataset])
-            if len(old) <= 1 and dataset.split("/", 1)[0] not in schemas.KEYS:
+        if not self.writable:
+            raise StoreError("store opened read-only")
+        dim = None
+        if table_of(dataset) in schemas.EMBEDDING_TABLES:
+            dim = table.schema.field("embedding").type.list_size
+        schema = expected_schema(dataset, dim)
+        table = schemas.conform(table, schema)
+        table = table.cast(delta_schema(schema))  # Delta arrays are variable-length lists
+        dt = self.delta(dataset)
+        target = dt if dt is not None else str(self.path_of(dataset))
+        extra = {}
+        if dt is None:
+            meta = {"oscar_table": table_of(dataset)}
+            if dim:
+                meta["dim"] = dim
+            extra = {"name": dataset.replace("/", "__"), "description": json.dumps(meta)}
+        try:
+            write_deltalake(
+                target,
+                table,
+                mode=mode,
+                writer_properties=writer_properties(),
+                commit_properties=CommitProperties(custom_metadata={"oscar_run_id": run_id}),
+                **extra,
+            )
+        except Exception as exc:  # noqa: BLE001 - delta-rs wraps OS errors in DeltaError ("os error 28")
+            err = os_error_of(exc)
+            if err is None:
+                raise
+            err.filename = err.filename or str(self.path_of(dataset))
+            raise StoreError(io_error_message(err, self.root, "commit")) from None
+        if dt is None:
+            self._tables.pop(dataset, None)
+        else:
+            self._tables[dataset] = dt  # write_deltalake advanced it to the new version
+
+    def small_files(self, dataset: str, small_bytes: int) -> int:
+        """Number of data files under ``small_bytes`` in ``dataset``."""
+        return sum(1 for _, size in self.files(dataset) if size < small_bytes)
+
+    def _resolve_as_of(self, as_of: int | str | datetime) -> datetime:
+        """A runs-table version or a time -> the commit time every table is loaded at."""
+        if isinstance(as_of, str):
+            text = as_of.strip()
+            if text.isdigit():
+                as_of = int(text)
+            else:
+                try:
+                    as_of = datetime.fromisoformat(text.replace("Z", "+00:00"))
+                except ValueError:
+                    raise StoreError(f"--as-of expects a runs version or an ISO time, got {text!r}") from None
+        if isinstance(as_of, datetime):
+            return as_of if as_of.tzinfo else as_of.replace(tzinfo=timezone.utc)
+        runs = self.delta("runs")
+        if runs is None:
+            raise StoreError(f"store {self.root} has no runs yet: nothing to travel to")
+        history = {h["version"]: h for h in runs.history()}
+        if int(as_of) not in history:
+            raise StoreError(f"no runs version {as_of}: versions are 0..{runs.version()}")
+        self._tables.clear()
+        return datetime.fromtimestamp(history[int(as_of)]["timestamp"] / 1000, tz=timezone.utc)
+
+
+def store_version(root: str | os.PathLike) -> tuple | None:
+    """A cheap token that changes with every commit to the store at ``root`` (no Delta log is parsed):
+    the newest commit number of each table's ``_delta_log``. ``None`` where there is no store."""
+    root = Path(root)
+    out = []
+    for table in TABLE_ORDER:
+        base = root / table
+        dirs = [base]
+        if table in schemas.EMBEDDING_TABLES:
+            try:
+                dirs = sorted(p for p in base.iterdir() if p.is_dir())
+            except (FileNotFoundError, NotADirectoryError):
+                dirs = []
+        for d in dirs:
+            try:
+                names = os.listdir(d / DELTA_LOG)
+            except (FileNotFoundError, NotADirectoryError):
                 continue
-            latest = self.read_latest(dataset)
-            self.commit({dataset: latest}, run_id, removes={dataset: old})
-            for rel in old:
-                (self.root / rel).unlink(missing_ok=True)
-            kept[dataset] = latest.num_rows
-        return kept
+            seqs = [int(n[:-5]) for n in names if n.endswith(".json") and n[:-5].isdigit()]
+            if seqs:
+                out.append((str(d.relative_to(root)), max(seqs)))
+    return tuple(out) or None
+
+
+def os_error_of(exc: BaseException) -> OSError | None:
+    """``exc`` as an ``OSError``: itself, or the ``(os error N)`` that delta-rs puts in its messages."""
+    import re
+
+    if isinstance(exc, OSError):
+        return exc
+    m = re.search(r"\(os error (\d+)\)", str(exc))
+    if m is None:
+        return None
+    code = int(m.group(1))
+    return OSError(code, os.strerror(code))
+
+
+def io_error_message(exc: OSError, root: Path, action: str) -> str:
+    """One line for a failed store write or open: what happened, and that the store is still consistent."""
+    import errno as e
+
+    why = {
+        e.ENOSPC: "no space left on device",
+        e.EDQUOT: "disk quota exceeded",
+        e.EROFS: "read-only file system",
+        e.EACCES: "permission denied",
+        e.EPERM: "operation not permitted",
+    }.get(exc.errno, exc.strerror or str(exc))
+    name = Path(exc.filename).name if getattr(exc, "filename", None) else root.name
+    if action == "commit":
+        return (
+            f"cannot write to the store {root} ({name}): {why}; the failed commit is not visible and "
+            "earlier commits are intact: fix this and run the same command again"
+        )
+    return f"cannot open the store {root} for writing ({name}): {why}"
+
+
+def check_format(root: Path) -> None:
+    """Raise :class:`StoreError` unless ``root`` holds a store of this format version."""
+    try:
+        meta = json.loads((root / STORE_MARKER).read_text())
+    except (OSError, ValueError) as exc:
+        raise corrupt(root, f"{root / STORE_MARKER} is unreadable ({_first_line(exc)})") from None
+    version = meta.get("format_version") if isinstance(meta, dict) else None
+    if version == 1:
+        raise StoreError(
+            f"{root} is a store in the old Parquet+_log format: convert it with "
+            f"`python -m pipeline.migrate {root} NEW_STORE`"
+        )
+    if version != FORMAT_VERSION:
+        raise StoreError(f"{root} has store format {version!r}; this version reads {FORMAT_VERSION}")
+
+
+def _bad_log_file(log: Path, parse: bool = True) -> Path:
+    """The first missing (or, with ``parse``, unreadable) commit file of a Delta log after its latest
+    checkpoint; the log folder itself when none stands out."""
+    versions = sorted(int(p.name[:20]) for p in log.glob("*.json") if p.name[:20].isdigit())
+    cps = [int(p.name[:20]) for p in log.glob("*.checkpoint*.parquet") if p.name[:20].isdigit()]
+    start = max(cps) + 1 if cps else 0
+    present = set(versions)
+    for v in range(start, (versions[-1] + 1) if versions else 1):
+        path = log / f"{v:020d}.json"
+        if v not in present:
+            return path
+        if not parse:
+            continue
+        try:
+            lines = [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+        except (OSError, ValueError):
+            return path
+        if not lines:
+            return path
+    return log
+
+
+def writer_properties():
+    """Parquet settings of every data file the store writes (zstd, 8192-row groups)."""
+    from deltalake import WriterProperties
+
+    return WriterProperties(compression="ZSTD", max_row_group_size=8192)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def latest_rows(table: pa.Table, key: list[str]) -> pa.Table:

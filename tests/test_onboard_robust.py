@@ -131,7 +131,8 @@ def test_kill_during_run_then_resume_equals_uninterrupted(tmp_path):
     )
     deadline = time.time() + 300
     while time.time() < deadline:  # kill -9 once the first batch is committed, mid-run
-        if (killed / "views").exists() and any(p.suffix == ".parquet" for p in (killed / "views").iterdir()):
+        log = killed / "views" / "_delta_log"
+        if log.exists() and any(p.suffix == ".json" for p in log.iterdir()):
             break
         time.sleep(0.05)
     time.sleep(0.3)
@@ -145,22 +146,37 @@ def test_kill_during_run_then_resume_equals_uninterrupted(tmp_path):
     )
     assert "error" not in out.stderr.lower()
     assert content(killed) == content(full)
-    assert not list(killed.rglob("*.tmp"))
 
 
-def test_uncommitted_parts_are_invisible_and_cleaned(tmp_path, offline_models):
+def test_uncommitted_files_are_invisible_and_cleaned(tmp_path, offline_models):
+    from pipeline.compact import main as compact_main
+
     lib, store = tmp_path / "lib", tmp_path / "store"
     shutil.copytree(SAMPLE_LIBRARY / "011_banana", lib / "banana")
     onboard(lib, store, offline_models)
     before = content(store)
-    # what a writer killed between writing a part and committing it leaves behind
-    orphan = store / "views" / "part-orphan-00001.parquet"
+    # what a writer killed between writing a data file and committing it leaves behind
+    orphan = store / "views" / "part-00000-orphan-c000.zstd.parquet"
     shutil.copy(next((store / "views").glob("part-*.parquet")), orphan)
-    (store / "captions" / "part-x.parquet.tmp").write_bytes(b"half written")
-    assert content(store) == before  # readers go by the commit log
-    Store.open(store, writable=True).close()  # the next writer removes orphans
-    assert not orphan.exists() and not (store / "captions" / "part-x.parquet.tmp").exists()
+    assert content(store) == before  # readers go by the Delta log
+    Store.open(store, writable=True).close()  # a writer does not delete what the log does not name
+    assert orphan.exists()
+    # compact --remove-orphans does, once they are older than the retention period
+    assert compact_main([str(store), "--remove-orphans", "--retention-hours", "0"]) == 0
+    assert not orphan.exists()
     assert content(store) == before
+
+
+def test_two_onboardings_at_once_second_gets_a_clear_error(tmp_path, offline_models):
+    from pipeline.store import StoreError
+
+    lib, store = tmp_path / "lib", tmp_path / "store"
+    shutil.copytree(SAMPLE_LIBRARY / "011_banana", lib / "banana")
+    holder = Store.open(store, create=True)  # stands in for a first onboarding in progress
+    with pytest.raises(StoreError, match="locked by another writer"):
+        onboard(lib, store, offline_models)
+    holder.close()
+    assert onboard(lib, store, offline_models).rendered == 1
 
 
 def test_second_writer_is_refused(tmp_path):

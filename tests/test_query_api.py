@@ -176,7 +176,7 @@ def test_embedding_cache_is_written_and_reused(tmp_path, monkeypatch):
     img, mask = red_can_photo()
     with Retriever.open(path, models=fake_models()) as r:
         first = r.query(img, "the red can", mask=mask).to_dict()["candidates"]
-    cached = sorted(p.name.split("-")[0] for p in (path / "_cache" / "query").glob("*.arrow"))
+    cached = sorted(p.parent.name.split("-")[0] for p in (path / "_cache" / "query").glob("*/seg-*.arrow"))
     assert cached == ["caption", "view"]
     with Retriever.open(path, models=fake_models()) as r:
         assert r.query(img, "the red can", mask=mask).to_dict()["candidates"] == first

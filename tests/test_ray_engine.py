@@ -11,8 +11,8 @@ from conftest import SAMPLE_LIBRARY
 
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.config import OnboardConfig
-from pipeline.onboard.engines.local import run_onboarding
 from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.run import run_onboarding
 from pipeline.store import Store
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install 'oscar-pipeline[ray]')")
@@ -67,12 +67,12 @@ class Interrupt:
         self.n, self.calls = n, 0
         real = Store.commit
 
-        def commit(store, tables, run_id, removes=None):
+        def commit(store, tables, run_id):
             if "runs" not in tables:
                 self.calls += 1
                 if self.calls > self.n:
                     raise KeyboardInterrupt
-            return real(store, tables, run_id, removes)
+            return real(store, tables, run_id)
 
         monkeypatch.setattr(Store, "commit", commit)
 

@@ -1,17 +1,15 @@
 """What a query needs from a store, loaded once: the onboarding run's models and fingerprints, the
 active meshes, the stage-1 caption table and the stage-2 view table.
 
-The two embedding tables are derived data: they are cached as Arrow IPC files under
-``STORE/_cache/query/`` (memory-mapped on the next open), keyed by the store parts they were built from,
-so a warm open of a 1M-caption store costs milliseconds instead of a Parquet scan.
+The two embedding tables are derived data: they are cached as Arrow IPC segments under
+``STORE/_cache/query/`` (memory-mapped on the next open) and brought up to date from the Delta table's
+files on each open (:mod:`pipeline.query.cache`): a commit costs the next open only the added files.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import pyarrow as pa
 
@@ -107,23 +105,18 @@ class StoreTables:
 
     # ------------------------------------------------------------------ embeddings (cached)
     def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:
-        """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``, cached."""
-        key = fingerprint(
-            {
-                "kind": kind,
-                "fp": fp,
-                "parts": [p.name for p in self.store.parts(dataset)],
-                "meshes": [p.name for p in self.store.parts("meshes")],
-                "sql": load_sql(f"query_{kind}_embeddings") + load_sql("query_active_meshes"),
-                "layout": (getattr(layout, "__name__", None), SLICES),
-            }
-        )
-        cache = self._cache_path(kind, key)
-        if cache is not None and cache.exists():
+        """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``; from the
+        incremental cache (:mod:`pipeline.query.cache`) for tables of at least ``CACHE_MIN_ROWS`` rows."""
+        dt = self.store.delta(dataset)
+        n_rows = 0
+        if dt is not None:
+            add = dt.get_add_actions(flatten=True)
+            n_rows = sum(x or 0 for x in add.column("num_records").to_pylist())
+        if self.use_cache and n_rows >= CACHE_MIN_ROWS:
             try:
-                return _read_ipc(cache)
-            except (OSError, pa.ArrowInvalid):
-                pass  # a damaged cache file is rebuilt below
+                return self._cached(kind, dataset, fp, layout)
+            except OSError:
+                pass  # read-only or full disk: queries still work, uncached
         d = self.store.dataset(dataset)
         if d is None:
             return pa.table({"mesh_idx": pa.array([], pa.int32()), "view_index": pa.array([], pa.int16())})
@@ -132,15 +125,46 @@ class StoreTables:
             load_sql(f"query_{kind}_embeddings"), params={"fingerprint": fp}
         ).to_arrow_table()
         self.con.unregister(f"query_{kind}_source")
-        table = layout(table) if layout is not None else table.combine_chunks()
-        if cache is not None and table.num_rows >= CACHE_MIN_ROWS:
-            _write_ipc_atomic(table, cache, stale=cache.parent.glob(f"{kind}-*.arrow"))
+        return layout(table) if layout is not None else table.combine_chunks()
+
+    def _cached(self, kind: str, dataset: str, fp: str, layout) -> pa.Table:
+        from pipeline.query.cache import SegmentCache
+
+        key = fingerprint(
+            {
+                "kind": kind,
+                "dataset": dataset,
+                "fp": fp,
+                "sql": load_sql(f"query_{kind}_embeddings") + load_sql("query_active_meshes"),
+                "layout": (getattr(layout, "__name__", None), SLICES),
+                "format": 2,
+            }
+        )
+        directory = self.store.root.joinpath(*CACHE_DIR) / f"{kind}-{key}"
+        self.store.check_files(dataset)
+        files = [(p.name, p) for p in self.store.parts(dataset)]
+
+        def vector_columns(seg: pa.Table) -> list[str]:
+            return [c for c in seg.column_names if c == "embedding" or (c[0] == "e" and c[1:].isdigit())]
+
+        cache = SegmentCache(directory, vector_columns, layout)
+        table = cache.load(
+            files, self.store.schema(dataset), fp, self.meshes.column("mesh_id").combine_chunks()
+        )
+        self.cache_stats = getattr(self, "cache_stats", {})
+        self.cache_stats[kind] = cache.stats
         return table
 
-    def _cache_path(self, kind: str, key: str) -> Path | None:
-        if not self.use_cache:
-            return None
-        return self.store.root.joinpath(*CACHE_DIR) / f"{kind}-{key}.arrow"
+
+def store_version(root) -> object:
+    """An opaque token that changes with every commit to the store at ``root``; cheap enough to poll.
+
+    The query service compares tokens to decide when to reopen (:func:`pipeline.store.store_version`:
+    the newest Delta commit of each table). ``None`` when the store has no commit.
+    """
+    from pipeline.store import store_version as delta_store_version
+
+    return delta_store_version(root)
 
 
 def connect_store(store: Store):
@@ -149,31 +173,3 @@ def connect_store(store: Store):
 
     kw = {"views": False} if "views" in inspect.signature(connect).parameters else {}
     return connect(store, **kw)
-
-
-def _read_ipc(path: Path) -> pa.Table:
-    import pyarrow.ipc as ipc
-
-    source = pa.memory_map(str(path), "r")
-    return ipc.open_file(source).read_all()
-
-
-def _write_ipc_atomic(table: pa.Table, path: Path, stale) -> None:
-    """Write the cache file via a temp name + rename; a read-only store simply goes uncached."""
-    import pyarrow.ipc as ipc
-
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        old = [p for p in stale if p != path]
-        # not "*.tmp": the store's writer deletes those as orphans
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.partial")
-        try:
-            with pa.OSFile(str(tmp), "wb") as sink, ipc.new_file(sink, table.schema) as writer:
-                writer.write_table(table, max_chunksize=65536)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        for p in old:
-            p.unlink(missing_ok=True)
-    except OSError:
-        pass  # read-only or full disk: queries still work, uncached

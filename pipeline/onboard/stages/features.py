@@ -18,11 +18,13 @@ FEATURES_OUT = with_errors(schemas.VIEW_FEATURES)
 class FeatureStage:
     """Detects local features on every view of a batch (CPU; no model to load)."""
 
-    def __init__(self, cfg, run_id: str):
+    model = None  # the engines load a step's model up front; this stage has none
+
+    def __init__(self, cfg, run_id: str, step, model=None):
         self.cfg = cfg
         self.run_id = run_id
         self.features = cfg.features
-        self.fingerprint = cfg.fingerprints()["features"]
+        self.fingerprint = step.fingerprint
 
     def __call__(self, views: pa.Table) -> pa.Table:
         from pipeline.localfeat import detect, to_row
