@@ -72,9 +72,9 @@ def bench_full(ycb: Path, tmp: Path, workers: int) -> None:
 
 def bench_render(ycb: Path, reps: int = 5) -> None:
     sys.path.insert(0, str(REPO))
-    from pipeline.config import RenderConfig
-    from pipeline.meshio import load_mesh
-    from pipeline.render import Renderer
+    from pipeline.mesh.load import load_mesh
+    from pipeline.mesh.render import Renderer
+    from pipeline.mesh.settings import RenderConfig
 
     r = Renderer(RenderConfig())
     r.warm_up()
@@ -99,8 +99,8 @@ def bench_render(ycb: Path, reps: int = 5) -> None:
 def bench_render_pool(ycb: Path, workers: int, n: int = 24) -> None:
     """Render-only throughput of the worker pool (load + normalise + 8 views + PNG), no models running."""
     sys.path.insert(0, str(REPO))
-    from pipeline.config import OnboardConfig
-    from pipeline.workers import RenderPool
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.engines.render_pool import RenderPool
 
     names = sorted(p.name for p in ycb.iterdir() if (p / "textured.obj").exists())[:n]
     items = [{"mesh_id": x, "abs_path": str(ycb / x / "textured.obj"), "format": "obj"} for x in names]
@@ -124,9 +124,9 @@ def bench_unchanged_synthetic(n: int, tmp: Path) -> None:
     import pyarrow as pa
 
     from pipeline import schemas
-    from pipeline.config import OnboardConfig
-    from pipeline.discover import identify, walk_library
-    from pipeline.plan import encoder_slugs
+    from pipeline.mesh.discover import identify, walk_library
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.plan import encoder_slugs
     from pipeline.store import Store, new_run_id, utcnow
 
     lib = tmp / "synthetic"

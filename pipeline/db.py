@@ -15,25 +15,22 @@ Relations of a connection (see ``docs/analysts.md``):
 from __future__ import annotations
 
 from functools import cache
-from pathlib import Path
 
 import pyarrow as pa
 
 from pipeline import schemas
+from pipeline.resources import sql_file, sql_names
 from pipeline.store import Store
-
-SQL_DIR = Path(__file__).resolve().parent.parent / "sql"
-VIEWS_DIR = SQL_DIR / "views"
-AUDIT_DIR = SQL_DIR / "audit"
 
 
 @cache
 def load_sql(name: str) -> str:
-    """Text of ``sql/<name>.sql`` (``name`` may include a sub-folder, e.g. ``audit/short_captions``)."""
-    path = SQL_DIR / f"{name}.sql"
-    if not path.is_file():
-        raise FileNotFoundError(f"no SQL file {path}")
-    return path.read_text()
+    """Text of ``sql/<name>.sql`` (``name`` may include a sub-folder, e.g. ``audit/short_captions``), read
+    through ``importlib.resources`` so it works from a wheel as from a checkout."""
+    res = sql_file(name)
+    if not res.is_file():
+        raise FileNotFoundError(f"no SQL file sql/{name}.sql")
+    return res.read_text(encoding="utf-8")
 
 
 def relation_name(dataset: str) -> str:
@@ -137,25 +134,30 @@ def open_store(location: str):
     return Store.open(location)
 
 
-def view_files() -> list[Path]:
-    """The view definitions, in creation order (file names start with their order: ``10_meshes.sql``)."""
-    return sorted(VIEWS_DIR.glob("*.sql"))
+def view_names() -> list[str]:
+    """The view definitions of ``sql/views/``, in creation order (names start with it: ``10_meshes``)."""
+    return sql_names("views")
+
+
+def view_files() -> list:
+    """The view definition files (``importlib.resources`` traversables), in creation order."""
+    return [sql_file(f"views/{name}") for name in view_names()]
 
 
 def audit_names() -> list[str]:
     """Names of the ready audits of ``sql/audit/``."""
-    return sorted(p.stem for p in AUDIT_DIR.glob("*.sql"))
+    return sql_names("audit")
 
 
 def create_views(con) -> None:
     """Create (or replace) every view of ``sql/views/`` on ``con``."""
     import duckdb
 
-    for path in view_files():
+    for name in view_names():
         try:
-            con.execute(load_sql(f"views/{path.stem}"))
+            con.execute(load_sql(f"views/{name}"))
         except duckdb.Error as exc:
-            raise RuntimeError(f"{path}: {exc}") from exc
+            raise RuntimeError(f"sql/views/{name}.sql: {exc}") from exc
 
 
 def connect(store: Store, database: str = ":memory:", *, views: bool = True):

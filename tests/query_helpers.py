@@ -25,9 +25,9 @@ def render_query_view(
     """(PIL RGB image, bool mask) of ``mesh_path`` seen from (azimuth, elevation), on the onboarding gray."""
     from PIL import Image
 
-    from pipeline.config import RenderConfig
-    from pipeline.meshio import load_mesh
-    from pipeline.render import Renderer
+    from pipeline.mesh.load import load_mesh
+    from pipeline.mesh.render import Renderer
+    from pipeline.mesh.settings import RenderConfig
 
     fmt = Path(mesh_path).suffix.lstrip(".").lower()
     mesh = load_mesh(str(mesh_path), fmt, max_faces=2_000_000)
@@ -89,8 +89,8 @@ def make_store(
     from datetime import datetime, timezone
 
     from pipeline import schemas
+    from pipeline.mesh.render import encode_png
     from pipeline.profiles import get_profile
-    from pipeline.render import encode_png
     from pipeline.store import Store, slug
 
     prof = get_profile(profile)

@@ -7,9 +7,9 @@ import json
 import pytest
 from test_eval_synth import make_toy_library
 
-from pipeline.config import OnboardConfig
 from pipeline.evaluate.cli import main
-from pipeline.executor import run_onboarding
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.engines.local import run_onboarding
 
 
 @pytest.fixture(scope="module")

@@ -92,7 +92,7 @@ def test_a_mesh_queries_do_not_depend_on_the_other_meshes(two_meshes):
 
 
 def test_viewpoints_avoid_the_onboarding_views():
-    from pipeline.cameras import view_directions
+    from pipeline.mesh.cameras import view_directions
 
     cfg = SynthConfig(per_mesh=200, seed=0, min_view_separation_deg=12.0)
     onboard = np.stack([d for _, _, d in view_directions(cfg.onboarding)])

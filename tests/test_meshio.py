@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.cameras import framed_pose, view_directions
-from pipeline.config import RenderConfig
-from pipeline.discover import DiscoveryError, content_hash, referenced_files, walk_library
-from pipeline.meshio import MeshError, load_mesh
+from pipeline.mesh.cameras import framed_pose, view_directions
+from pipeline.mesh.discover import DiscoveryError, content_hash, referenced_files, walk_library
+from pipeline.mesh.load import MeshError, load_mesh
+from pipeline.mesh.settings import RenderConfig
 
 
 def _box(extents=(0.1, 0.2, 0.4)) -> trimesh.Trimesh:

@@ -12,7 +12,7 @@ from conftest import copy_ycb
 from onboard_helpers import content, onboard
 
 from pipeline import schemas
-from pipeline.render import decode_png
+from pipeline.mesh.render import decode_png
 from pipeline.store import Store
 
 MESHES = ["005_tomato_soup_can", "011_banana", "061_foam_brick"]
@@ -82,7 +82,7 @@ def test_captions_are_sentences(built):
 
 def test_unchanged_rerun_does_no_work(built, offline_models, monkeypatch):
     lib, store, _ = built
-    import pipeline.discover as discover
+    import pipeline.mesh.discover as discover
 
     def no_hash(*a, **k):
         raise AssertionError("unchanged files must not be re-hashed")
@@ -118,7 +118,7 @@ def test_modified_added_removed_files(tmp_path, offline_models):
     summary = onboard(lib, store, offline_models)
     assert summary.added == 2 and summary.removed == 2 and summary.rendered == 2
 
-    from pipeline.plan import mesh_state
+    from pipeline.onboard.plan import mesh_state
 
     state = mesh_state(Store.open(store), str(lib.resolve())).to_pylist()
     active = {r["name"]: r["mesh_id"] for r in state if r["status"] == "active"}
@@ -164,7 +164,7 @@ def test_force_and_config_change_redo_only_their_stages(tmp_path, offline_models
 def test_cap3d_camera_layout(tmp_path, offline_models):
     lib = copy_ycb(tmp_path / "lib", MESHES[:1])
     store = tmp_path / "store"
-    from pipeline.config import RenderConfig
+    from pipeline.mesh.settings import RenderConfig
 
     cfg = RenderConfig(cameras="cap3d", resolution=128, extra_bg_view=True)
     assert cfg.fingerprint() != RenderConfig(cameras="cap3d", resolution=128).fingerprint()

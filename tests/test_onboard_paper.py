@@ -10,7 +10,7 @@ import numpy as np
 from conftest import SAMPLE_LIBRARY
 
 from pipeline import schemas
-from pipeline.onboard import main
+from pipeline.onboard.cli import main
 from pipeline.store import Store
 
 

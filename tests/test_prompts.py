@@ -23,13 +23,13 @@ def test_prompt_texts_are_the_papers_byte_for_byte():
 
 
 def test_prompt_text_is_in_the_caption_fingerprint_only():
-    from pipeline.config import OnboardConfig
+    from pipeline.onboard.config import OnboardConfig
 
     cfg = OnboardConfig(profile="paper")
     old = cfg.fingerprints()
     patched = dict(profiles.PROMPT_STYLES, attributes="What is this?")
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("pipeline.config.PROMPT_STYLES", patched)
+        mp.setattr("pipeline.onboard.config.PROMPT_STYLES", patched)
         new = cfg.fingerprints()
         assert cfg.prompt == "What is this?"
     assert new["render"] == old["render"]
@@ -47,7 +47,7 @@ def test_store_captioned_with_an_old_prompt_is_recaptioned_not_rerendered(tmp_pa
     store = tmp_path / "store"
     old = dict(profiles.PROMPT_STYLES, attributes="Describe the object in the image.")  # a pre-fix prompt
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr("pipeline.config.PROMPT_STYLES", old)
+        mp.setattr("pipeline.onboard.config.PROMPT_STYLES", old)
         first = onboard(lib, store, offline_models)
     assert first.rendered == 1 and first.captioned == 1
     s = Store.open(store)

@@ -199,7 +199,7 @@ def test_explain_and_export(retriever, tmp_path):
 
 
 def test_export_copies_mesh_with_its_materials(tmp_path):
-    from pipeline.discover import content_hash
+    from pipeline.mesh.discover import content_hash
     from pipeline.query.export import export_mesh
 
     lib = tmp_path / "lib" / "mug"

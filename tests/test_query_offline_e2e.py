@@ -25,7 +25,7 @@ def ycb_store(tmp_path_factory, offline_models):
 
 
 def _render_config():
-    from pipeline.config import RenderConfig
+    from pipeline.mesh.settings import RenderConfig
 
     return RenderConfig(resolution=192)  # smaller renders keep the test fast; same layout as the default
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from conftest import SAMPLE_LIBRARY
 
-from pipeline.config import OnboardConfig, RenderConfig
-from pipeline.executor import run_onboarding
-from pipeline.ray_options import RayOptions
+from pipeline.mesh.settings import RenderConfig
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.engines.local import run_onboarding
+from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.store import Store
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install 'oscar-pipeline[ray]')")
@@ -195,7 +196,7 @@ def test_ray_reads_stored_views_and_captions(ray_session, library, reference, tm
 
 
 def test_layout_shares_the_cluster():
-    from pipeline.ray_engine import plan_layout
+    from pipeline.onboard.engines.ray import plan_layout
 
     cpu_only = plan_layout(RayOptions(), cpus=2, gpus=0, n_caption=1, n_embed=2, n_render=78)
     assert cpu_only.render_workers == 2 and cpu_only.caption_gpus == cpu_only.embed_gpus == 0

@@ -322,8 +322,8 @@ def _style_stores(args, out: Path, models: dict | None = None) -> dict[str, str]
     if args.onboard_styles:
         if not args.library:
             raise ValueError("--onboard-styles needs --library DIR (the library to onboard per style)")
-        from pipeline.config import OnboardConfig
-        from pipeline.executor import run_onboarding
+        from pipeline.onboard.config import OnboardConfig
+        from pipeline.onboard.engines.local import run_onboarding
 
         root = Path(args.styles_dir or out / "stores")
         reuse = _onboarded_from(args.store) == {str(Path(args.library).resolve())}
@@ -362,9 +362,9 @@ def _onboarded_from(store_path: str) -> set[str]:
 def _bar(progress: bool):
     if not progress:
         return None
-    from tqdm.auto import tqdm
+    from pipeline.progress import iterate  # tqdm on a terminal, plain lines in a log
 
-    return lambda it: tqdm(it, desc="queries", unit="query")
+    return lambda it: iterate(it, "queries", unit="query")
 
 
 if __name__ == "__main__":

@@ -135,7 +135,7 @@ def read_store_meshes(store_path: str | os.PathLike) -> list[MeshRef]:
 
 def read_folder_meshes(library: str | os.PathLike) -> list[MeshRef]:
     """Meshes of a library folder (no hashing: queries then name their expected mesh by path)."""
-    from pipeline.discover import walk_library
+    from pipeline.mesh.discover import walk_library
 
     root = str(Path(library).resolve())
     return [MeshRef(None, f.source_path, root, f.name, f.format) for f in walk_library(root)]

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import RenderConfig
 from pipeline.evaluate.backgrounds import BACKGROUND_KINDS, make_background
 from pipeline.evaluate.datasets import Query, write_queries
 from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN, MeshRef, class_of
 from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE, prompt_for
+from pipeline.mesh.settings import RenderConfig
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,7 @@ def _unit(az_deg: float, el_deg: float) -> np.ndarray:
 
 def sample_views(cfg: SynthConfig, rng: np.random.Generator) -> list[SynthView]:
     """``cfg.per_mesh`` view parameter sets, each at least ``min_view_separation_deg`` from onboarding views."""
-    from pipeline.cameras import view_directions
+    from pipeline.mesh.cameras import view_directions
 
     onboard = np.stack([d for _, _, d in view_directions(cfg.onboarding)])
     min_cos = math.cos(math.radians(cfg.min_view_separation_deg))
@@ -127,7 +127,7 @@ class SynthRenderer:
     """One offscreen GL context for every query of a run."""
 
     def __init__(self, cfg: SynthConfig):
-        from pipeline.render import setup_headless_gl
+        from pipeline.mesh.render import setup_headless_gl
 
         setup_headless_gl()
         import pyrender
@@ -138,7 +138,7 @@ class SynthRenderer:
 
     def render(self, mesh, view: SynthView) -> tuple[np.ndarray, np.ndarray]:
         """RGB (HxWx3 uint8, black background) and the exact object mask (depth > 0) of one view."""
-        from pipeline.cameras import fit_distance, look_at_pose
+        from pipeline.mesh.cameras import fit_distance, look_at_pose
 
         pyrender, cfg = self._pyrender, self.cfg
         scene = pyrender.Scene(bg_color=[0.0, 0.0, 0.0, 1.0], ambient_light=[view.ambient] * 3)
@@ -147,7 +147,7 @@ class SynthRenderer:
             for prim in pm.primitives:
                 mat = prim.material
                 if mat is not None and hasattr(mat, "metallicFactor"):
-                    mat.metallicFactor, mat.roughnessFactor = 0.0, 0.9  # see pipeline.render
+                    mat.metallicFactor, mat.roughnessFactor = 0.0, 0.9  # see pipeline.mesh.render
             scene.add(pm)
         direction = _unit(view.azimuth_deg, view.elevation_deg)
         dist = fit_distance(mesh.sample_points, direction, cfg.yfov_deg, view.fill)
@@ -197,9 +197,9 @@ def generate(
 ) -> list[Query]:
     """Render ``cfg.per_mesh`` queries per mesh into ``out_dir``; return them (also written as JSONL)."""
     from PIL import Image
-    from tqdm.auto import tqdm
 
-    from pipeline.meshio import MeshError, load_mesh
+    from pipeline.mesh.load import MeshError, load_mesh
+    from pipeline.progress import iterate
 
     out = Path(out_dir)
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -209,7 +209,7 @@ def generate(
     queries: list[Query] = []
     skipped: list[dict] = []
     try:
-        for m in tqdm(meshes, desc="synthetic", unit="mesh", disable=not progress):
+        for m in iterate(meshes, "synthetic", unit="mesh", enabled=progress):
             rng = mesh_rng(cfg.seed, m.source_path)
             views = sample_views(cfg, rng)
             try:

@@ -9,7 +9,6 @@ batch.
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -59,11 +58,11 @@ def _resolve(base: Path, value):
 
 def run_batch(retriever, queries_path, out, *, progress: bool, **rank_args) -> tuple[int, int]:
     """Answer every line of ``queries_path`` into the text stream ``out``; returns (n_ok, n_failed)."""
-    from tqdm.auto import tqdm
+    from pipeline.progress import iterate
 
     items = list(read_queries(queries_path))
     ok = failed = 0
-    for qid, q, error in tqdm(items, desc="queries", unit="query", disable=not progress, file=sys.stderr):
+    for qid, q, error in iterate(items, "queries", unit="query", enabled=progress):
         if q is not None:
             try:
                 result = retriever.query(

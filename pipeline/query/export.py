@@ -13,7 +13,7 @@ def export_mesh(mesh: dict, out_dir: str | Path) -> tuple[Path, list[Path], bool
 
     Returns (folder, copied files, unchanged) where ``unchanged`` says the files still hash to the mesh_id.
     """
-    from pipeline.discover import content_hash
+    from pipeline.mesh.discover import content_hash
 
     src = Path(mesh["library_root"]) / mesh["source_path"]
     if not src.is_file():

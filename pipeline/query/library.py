@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pyarrow as pa
 
-from pipeline.config import fingerprint
 from pipeline.db import connect, load_sql
+from pipeline.fingerprint import fingerprint
 from pipeline.query.errors import QueryError
 from pipeline.query.stage1 import SLICES, slice_layout
 from pipeline.store import Store, slug

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline import schemas
-from pipeline.db import create_views, load_sql, relation_name, store_relations, view_files
+from pipeline.db import create_views, load_sql, relation_name, store_relations, view_names
 from pipeline.store import Store
 
 
@@ -61,8 +61,8 @@ def init_script(store: Store) -> str:
             lines.append(f'CREATE OR REPLACE VIEW "{relation_name(table)}" AS {union};')
         else:
             over_parts(relation_name(table), [], any_encoder_schema())
-    for path in view_files():
-        lines.append(load_sql(f"views/{path.stem}").strip())
+    for name in view_names():
+        lines.append(load_sql(f"views/{name}").strip())
     return "\n".join(lines) + "\n"
 
 

@@ -19,7 +19,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
+from pipeline.onboard.config import OnboardConfig
 
 #: per-mesh seconds spent in each stage (a batch's time split evenly over the meshes it processed)
 TIMING_COLUMNS = ("t_render", "t_load", "t_caption", "t_embed_text", "t_embed_image")
@@ -158,16 +158,16 @@ class RenderWorker(_Worker):
         self._pool = self._stage = None
         if render:  # start the GL context now: a worker without OpenGL fails here, not mesh by mesh
             if cfg.workers > 0:
-                from pipeline.workers import RenderPool
+                from pipeline.onboard.engines.render_pool import RenderPool
 
                 self._pool = RenderPool(cfg, run_id, 1, cfg.render_timeout_s)
             else:
-                from pipeline.stages import RenderStage
+                from pipeline.onboard.stages import RenderStage
 
                 self._stage = RenderStage(cfg, run_id)
 
     def process(self, rows: list[dict]) -> list[dict]:
-        from pipeline.stages import RENDER_OUT
+        from pipeline.onboard.stages import RENDER_OUT
 
         self._load_stored([r for r in rows if not r["do_render"]])
         todo = [r for r in rows if r["do_render"]]
@@ -228,7 +228,7 @@ class CaptionWorker(_Worker):
 
     def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], final: bool = False):
         super().__init__(cfg, run_id, roles, final)
-        from pipeline.stages import CaptionStage
+        from pipeline.onboard.stages import CaptionStage
 
         self.step = CaptionStage(cfg, run_id)
         _ = self.step.model  # load the model when the actor starts, not inside the first batch
@@ -251,7 +251,7 @@ class TextEmbedWorker(_Worker):
 
     def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], final: bool = False):
         super().__init__(cfg, run_id, roles, final)
-        from pipeline.stages import TextEmbedStage
+        from pipeline.onboard.stages import TextEmbedStage
 
         self.step = TextEmbedStage(cfg, run_id)
         _ = self.step.model
@@ -285,7 +285,7 @@ class ImageEmbedWorker(_Worker):
 
     def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], role: str, final: bool = False):
         super().__init__(cfg, run_id, roles, final)
-        from pipeline.stages import ImageEmbedStage
+        from pipeline.onboard.stages import ImageEmbedStage
 
         self.role = role
         self.step = ImageEmbedStage(cfg, run_id, role)

@@ -2,49 +2,14 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import asdict, dataclass, field
 
+from pipeline.fingerprint import fingerprint
+from pipeline.mesh.settings import RenderConfig
+from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
-from pipeline.ray_options import RayOptions
 
-#: Bump when rendering code changes in a way that changes pixels.
-RENDER_VERSION = "pyrender-5"
-#: Bump when the offline attribute captioner's wording changes.
 STAGES = ("render", "caption", "embed_text", "embed_image")
-GRAY = (205, 205, 205)
-
-
-def fingerprint(obj: object) -> str:
-    """Short stable hash of a JSON-serialisable object."""
-    blob = json.dumps(obj, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
-
-
-@dataclass(frozen=True)
-class RenderConfig:
-    """How views are rendered. The paper: K=8, 4 at -15 and 4 at +15 deg elevation, gray background."""
-
-    cameras: str = "oscar"  # "oscar" (paper layout) | "cap3d" (reference scripts' 8 fixed positions)
-    resolution: int = 512
-    background: tuple[int, int, int] = GRAY
-    yfov_deg: float = 40.0
-    fill: float = 0.9  # the object's projection spans this fraction of the frame
-    upper_ring_offset_deg: float = 45.0  # azimuth offset of the +15 deg ring (0 = same azimuths as -15 ring)
-    elevations_deg: tuple[float, float] = (-15.0, 15.0)
-    views_per_ring: int = 4
-    max_texture: int = 1024  # textures are downscaled to this edge length before upload
-    up: str = "auto"  # "auto" (z up; y up for glTF) | "z" | "y"
-    extra_bg_view: bool = False  # reference scripts: view 0 again on black, an extra stage-2 view
-
-    def fingerprint(self) -> str:
-        d = asdict(self)
-        if not d["extra_bg_view"]:
-            del d["extra_bg_view"]  # off: the fingerprint of before the option existed (stores stay valid)
-        if self.cameras == "cap3d":
-            d["cap3d_layout"] = 2  # views 4 and 5 at 26.3 deg (0.7), as the reference; 1 had them at 8 deg
-        return fingerprint({"v": RENDER_VERSION, **d})
 
 
 @dataclass(frozen=True)

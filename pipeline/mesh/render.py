@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.cameras import EXTRA_BG_COLOR, extra_bg_view, framed_pose, view_directions
-from pipeline.config import RenderConfig
-from pipeline.meshio import LoadedMesh
+from pipeline.mesh.cameras import EXTRA_BG_COLOR, extra_bg_view, framed_pose, view_directions
+from pipeline.mesh.load import LoadedMesh
+from pipeline.mesh.settings import RenderConfig
 
 
 def setup_headless_gl() -> None:
@@ -56,7 +56,7 @@ class Renderer:
         import trimesh
         from PIL import Image
 
-        from pipeline.meshio import LoadedMesh
+        from pipeline.mesh.load import LoadedMesh
 
         tri = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]], process=False)
         tri.visual = trimesh.visual.TextureVisuals(

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pyarrow as pa
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
-from pipeline.meshio import load_mesh
-from pipeline.stages.base import error_row, with_errors
+from pipeline.mesh.load import load_mesh
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row, with_errors
 
 GEOMETRY_FIELDS = [
     pa.field("n_vertices", pa.int64()),
@@ -34,7 +34,7 @@ class RenderStage:
 
     def _get_renderer(self):
         if self._renderer is None:
-            from pipeline.render import Renderer
+            from pipeline.mesh.render import Renderer
 
             self._renderer = Renderer(self.cfg.render)
         return self._renderer
@@ -47,7 +47,7 @@ class RenderStage:
 
     def render_one(self, item: dict) -> list[dict]:
         """Rows for one mesh: one per view, or a single error row."""
-        from pipeline.render import encode_png
+        from pipeline.mesh.render import encode_png
 
         base = {"mesh_id": item["mesh_id"], "fingerprint": self.fingerprint, "run_id": self.run_id}
         try:

@@ -12,20 +12,33 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
-from pipeline.config import OnboardConfig
-from pipeline.stages.base import error_row
-from pipeline.stages.render import RENDER_OUT
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row
+from pipeline.onboard.stages.render import RENDER_OUT
+
+EGL_HINT = "rendering needs EGL/OpenGL: install libegl1 libegl-mesa0 libgl1 (docs/install.md)"
 
 
 class RenderSetupError(RuntimeError):
-    """A render worker could not start (no EGL / OpenGL driver)."""
+    """A render worker could not start (pyrender / PyOpenGL import, no EGL / OpenGL driver)."""
+
+
+def _cause(exc: BaseException) -> str:
+    """The last line of ``exc``'s traceback (``ImportError: libEGL.so.1: cannot open ...``)."""
+    import traceback
+
+    return traceback.format_exception_only(type(exc), exc)[-1].strip()
 
 
 def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
-    from pipeline.stages.render import RenderStage
+    try:
+        from pipeline.onboard.stages.render import RenderStage
 
-    stage = RenderStage(cfg, run_id)
-    stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
+        stage = RenderStage(cfg, run_id)
+        stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
+    except Exception as exc:  # tell the parent why, instead of dying with the reason on our stderr only
+        conn.send(("setup_error", _cause(exc)))
+        return
     conn.send("ready")
     while True:
         try:
@@ -88,14 +101,20 @@ class RenderPool:
                 if not w.ready:
                     if w.conn in ready:
                         try:
-                            w.ready = w.conn.recv() == "ready"
+                            msg = w.conn.recv()
                         except (EOFError, OSError):
+                            w.proc.join(5)
                             raise RenderSetupError(
-                                "render worker failed to start (no EGL/OpenGL? see README: install libegl1 libegl-mesa0 libgl1)"
+                                f"render worker died while starting (exit code {w.proc.exitcode}); {EGL_HINT}; "
+                                "run with --workers 0 to see why"
                             ) from None
+                        if isinstance(msg, tuple) and msg[0] == "setup_error":
+                            raise RenderSetupError(f"render worker failed to start: {msg[1]} ({EGL_HINT})")
+                        w.ready = msg == "ready"
                     elif w.proc.sentinel in ready:
                         raise RenderSetupError(
-                            f"render worker failed to start (exit code {w.proc.exitcode}); run with --workers 0 to see why"
+                            f"render worker failed to start (exit code {w.proc.exitcode}); {EGL_HINT}; "
+                            "run with --workers 0 to see why"
                         )
                     continue
                 if w.item is None:

@@ -12,8 +12,8 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
-from pipeline.discover import DiscoveryError, FoundFile, identify, walk_library
+from pipeline.mesh.discover import DiscoveryError, FoundFile, identify, walk_library
+from pipeline.onboard.config import OnboardConfig
 from pipeline.store import Store, latest_rows, slug
 
 

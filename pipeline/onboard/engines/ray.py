@@ -1,6 +1,6 @@
 """The Ray engine (``--engine ray``): the onboarding stages on Ray Data, committed by the driver.
 
-The driver plans exactly as the local executor does (:func:`pipeline.plan.make_plan`), streams one row
+The driver plans exactly as the local executor does (:func:`pipeline.onboard.plan.make_plan`), streams one row
 per mesh through ``map_batches`` stages (render actors on CPUs, then captioner and encoder actor pools,
 on GPUs where the cluster has them) and commits every ``cfg.batch_size`` finished meshes through the
 local executor's own code (``LocalExecutor._downstream``). Only the driver writes the store, so the
@@ -22,11 +22,11 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
-from pipeline.executor import LocalExecutor, RunSummary, _bars, _Timer
-from pipeline.plan import Plan
-from pipeline.ray_options import RayOptions
-from pipeline.ray_workers import TIMING_COLUMNS, row_schema, unpack
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.engines.local import LocalExecutor, RunSummary, _bars, _Timer
+from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.engines.ray_workers import TIMING_COLUMNS, row_schema, unpack
+from pipeline.onboard.plan import Plan
 from pipeline.store import Store, utcnow
 
 
@@ -202,7 +202,12 @@ class RayExecutor(LocalExecutor):
     def _build_dataset(self, items: list[dict], resources: dict):
         import ray
 
-        from pipeline.ray_workers import CaptionWorker, ImageEmbedWorker, RenderWorker, TextEmbedWorker
+        from pipeline.onboard.engines.ray_workers import (
+            CaptionWorker,
+            ImageEmbedWorker,
+            RenderWorker,
+            TextEmbedWorker,
+        )
 
         opts = self.cfg.ray
         # a crashed actor is always replaced; the batch it held is retried max_retries times, then dropped
@@ -350,7 +355,7 @@ def _setup_error(exc: Exception) -> Exception:
     import re
 
     from pipeline.models.registry import ModelLoadError
-    from pipeline.workers import RenderSetupError
+    from pipeline.onboard.engines.render_pool import RenderSetupError
 
     for cls in (ModelLoadError, RenderSetupError):
         found = re.search(rf"{cls.__name__}: (.+)", str(exc))

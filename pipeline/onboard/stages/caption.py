@@ -5,9 +5,9 @@ from __future__ import annotations
 import pyarrow as pa
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
 from pipeline.models.registry import create_model
-from pipeline.stages.base import error_row, with_errors
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row, with_errors
 
 CAPTION_OUT = with_errors(schemas.CAPTIONS)
 
@@ -29,10 +29,10 @@ class CaptionStage:
         return self._model
 
     def __call__(self, views: pa.Table) -> pa.Table:
-        from pipeline.render import decode_png
+        from pipeline.mesh.render import decode_png
 
         model = self.model  # a model that cannot load ends the run (ModelLoadError), it is no mesh's fault
-        from pipeline.cameras import is_captioned
+        from pipeline.mesh.cameras import is_captioned
 
         items = [
             it

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from pipeline.config import RenderConfig
+from pipeline.mesh.settings import RenderConfig
 
 #: Directions of Cap3D's 8 fixed camera positions (x, y, z as multiples of distance * ratio), as its
 #: Blender script sets them: ``elevation_factor`` starts at 0.2 and is reassigned before views 2 (0.5),

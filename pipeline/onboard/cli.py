@@ -10,7 +10,7 @@ from pipeline.cli_common import add_model_args, fail, model_overrides
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.config import STAGES
+    from pipeline.onboard.config import STAGES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
     p = argparse.ArgumentParser(
@@ -92,8 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
-    from pipeline.config import OnboardConfig, RenderConfig
-    from pipeline.ray_options import RayOptions
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.engines.ray_options import RayOptions
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
@@ -128,11 +129,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return fail(str(exc))
 
-    from pipeline.executor import run_onboarding
     from pipeline.models.registry import ModelLoadError
-    from pipeline.ray_engine import RayEngineError
+    from pipeline.onboard.engines.local import run_onboarding
+    from pipeline.onboard.engines.ray import RayEngineError
+    from pipeline.onboard.engines.render_pool import RenderSetupError
     from pipeline.store import StoreError
-    from pipeline.workers import RenderSetupError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)

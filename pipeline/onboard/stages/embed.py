@@ -5,10 +5,10 @@ from __future__ import annotations
 import pyarrow as pa
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import create_model
-from pipeline.stages.base import error_row, with_errors
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import error_row, with_errors
 
 
 class _EmbedStage:
@@ -84,6 +84,6 @@ class ImageEmbedStage(_EmbedStage):
         super().__init__(cfg, run_id, model)
 
     def _encode(self, views: pa.Table):
-        from pipeline.render import decode_png
+        from pipeline.mesh.render import decode_png
 
         return self.model.encode_image([decode_png(b) for b in views.column("image").to_pylist()])

@@ -12,10 +12,10 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.config import OnboardConfig
-from pipeline.plan import Plan, encoder_slugs, make_plan
-from pipeline.stages import CaptionStage, ImageEmbedStage, RenderStage, TextEmbedStage, split_errors
-from pipeline.stages.render import RENDER_OUT
+from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.plan import Plan, encoder_slugs, make_plan
+from pipeline.onboard.stages import CaptionStage, ImageEmbedStage, RenderStage, TextEmbedStage, split_errors
+from pipeline.onboard.stages.render import RENDER_OUT
 from pipeline.store import Store, new_run_id, utcnow
 
 GEOMETRY_COLUMNS = ("n_vertices", "n_faces", "bounds_min", "bounds_max", "units_guess", "scale_to_unit")
@@ -70,7 +70,8 @@ class _Timer:
 
 
 def _bars(progress: bool, plan: Plan):
-    from tqdm.auto import tqdm
+    """Per-stage progress: tqdm bars on a terminal, plain lines in a cron log (:mod:`pipeline.progress`)."""
+    from pipeline.progress import stage_bars
 
     totals = {
         "render": len(plan.render),
@@ -78,10 +79,7 @@ def _bars(progress: bool, plan: Plan):
         "embed_text": len(plan.embed_text),
         "embed_image": len(set().union(*plan.embed_image.values())) if plan.embed_image else 0,
     }
-    return {
-        k: tqdm(total=n, desc=f"{k:<11}", unit="mesh", disable=not progress or n == 0, leave=True, position=i)
-        for i, (k, n) in enumerate(totals.items())
-    }
+    return stage_bars(totals, unit="mesh", enabled=progress)
 
 
 def _prefetch(source: Iterator, maxsize: int) -> Iterator:
@@ -257,7 +255,7 @@ class LocalExecutor:
             for it in items:
                 yield it, stage.render_one(it)
             return
-        from pipeline.workers import RenderPool
+        from pipeline.onboard.engines.render_pool import RenderPool
 
         t0 = time.perf_counter()
         pool = RenderPool(self.cfg, self.run_id, min(self.cfg.workers, len(items)), self.cfg.render_timeout_s)
@@ -439,7 +437,7 @@ def run_onboarding(
     summary = RunSummary(run_id, status="interrupted")
     try:
         if cfg.engine == "ray":
-            from pipeline.ray_engine import RayExecutor
+            from pipeline.onboard.engines.ray import RayExecutor
 
             summary = RayExecutor(store, cfg, run_id, progress=progress).run(library)
         else:

@@ -5,10 +5,10 @@ table or carry an ``error`` (one row per failed mesh), so the same code runs in 
 under Ray Data ``map_batches``. :func:`split_errors` separates the two.
 """
 
-from pipeline.stages.base import ERROR_FIELDS, split_errors
-from pipeline.stages.caption import CaptionStage
-from pipeline.stages.embed import ImageEmbedStage, TextEmbedStage
-from pipeline.stages.render import RENDER_OUT, RenderStage
+from pipeline.onboard.stages.base import ERROR_FIELDS, split_errors
+from pipeline.onboard.stages.caption import CaptionStage
+from pipeline.onboard.stages.embed import ImageEmbedStage, TextEmbedStage
+from pipeline.onboard.stages.render import RENDER_OUT, RenderStage
 
 __all__ = [
     "ERROR_FIELDS",
