@@ -126,7 +126,6 @@ def bench_unchanged_synthetic(n: int, tmp: Path) -> None:
     from pipeline import schemas
     from pipeline.mesh.discover import identify, walk_library
     from pipeline.onboard.config import OnboardConfig
-    from pipeline.onboard.plan import encoder_slugs
     from pipeline.store import Store, new_run_id, utcnow
 
     lib = tmp / "synthetic"
@@ -141,9 +140,8 @@ def bench_unchanged_synthetic(n: int, tmp: Path) -> None:
     made = time.perf_counter() - t
 
     # register every file as fully onboarded (one row per table per mesh is enough for planning)
-    cfg = OnboardConfig()
-    fps = cfg.fingerprints()
-    text_slug, image_slugs = encoder_slugs(cfg)
+    spec = OnboardConfig().resolve()
+    fps = spec.fingerprints
     root = str(lib.resolve())
     files = [identify(f, None) for f in walk_library(root)]
     run_id, now = new_run_id(), utcnow()
@@ -194,9 +192,7 @@ def bench_unchanged_synthetic(n: int, tmp: Path) -> None:
     }
     vec = np.zeros((len(ids), 4), np.float32)
     vec[:, 0] = 1
-    for dataset, fp in [(f"text_embeddings/{text_slug}", fps["embed_text"])] + [
-        (f"image_embeddings/{s}", fps[f"embed_image:{r}"]) for r, s in image_slugs.items()
-    ]:
+    for dataset, fp in [(s.dataset, s.fingerprint) for s in spec.steps if s.stage.per_encoder]:
         tables[dataset] = pa.table(
             {
                 "mesh_id": ids,

@@ -7,14 +7,13 @@ because the old parts stay valid until the commit that replaces them.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from pipeline.cli_common import fail
+from pipeline.cli_common import OneLineParser, fail
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="python -m pipeline.compact", description=__doc__.splitlines()[0])
     p.add_argument("store", metavar="STORE")
     args = p.parse_args(argv)
     from pipeline.store import Store, StoreError
@@ -25,6 +24,8 @@ def main(argv: list[str] | None = None) -> int:
             kept = store.compact()
     except StoreError as exc:
         return fail(str(exc))
+    except OSError as exc:
+        return fail(f"I/O error on the store or library: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     for dataset, rows in sorted(kept.items()):
         print(f"{dataset}: {before.get(dataset, 0)} parts -> 1, {rows} rows")
     return 0

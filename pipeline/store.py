@@ -79,6 +79,15 @@ class Store:
     def open(cls, path: str | os.PathLike, *, create: bool = False, writable: bool = False) -> Store:
         """Open the store at ``path``; ``create`` makes it if missing (implies writable)."""
         root = Path(path)
+        if root.exists() and not root.is_dir():
+            raise StoreError(f"store path {root} is a file, not a store directory")
+        try:
+            return cls._open(root, create, writable)
+        except OSError as exc:
+            raise StoreError(io_error_message(exc, root, "open")) from None
+
+    @classmethod
+    def _open(cls, root: Path, create: bool, writable: bool) -> Store:
         marker = root / STORE_MARKER
         if not marker.exists():
             if not create:
@@ -212,6 +221,12 @@ class Store:
         """Atomically add ``tables`` (dataset name -> rows) as new parts; return the commit sequence."""
         if not self.writable:
             raise StoreError("store opened read-only")
+        try:
+            return self._commit(tables, run_id, removes)
+        except OSError as exc:
+            raise StoreError(io_error_message(exc, self.root, "commit")) from None
+
+    def _commit(self, tables, run_id, removes) -> int:
         adds: dict[str, list[str]] = {}
         for dataset, table in tables.items():
             if table is None or table.num_rows == 0:
@@ -262,6 +277,26 @@ class Store:
                 (self.root / rel).unlink(missing_ok=True)
             kept[dataset] = latest.num_rows
         return kept
+
+
+def io_error_message(exc: OSError, root: Path, action: str) -> str:
+    """One line for a failed store write or open: what happened, and that the store is still consistent."""
+    import errno as e
+
+    why = {
+        e.ENOSPC: "no space left on device",
+        e.EDQUOT: "disk quota exceeded",
+        e.EROFS: "read-only file system",
+        e.EACCES: "permission denied",
+        e.EPERM: "operation not permitted",
+    }.get(exc.errno, exc.strerror or str(exc))
+    name = Path(exc.filename).name if getattr(exc, "filename", None) else root.name
+    if action == "commit":
+        return (
+            f"cannot write to the store {root} ({name}): {why}; the failed commit is not visible and "
+            "earlier commits are intact: fix this and run the same command again"
+        )
+    return f"cannot open the store {root} for writing ({name}): {why}"
 
 
 def latest_rows(table: pa.Table, key: list[str]) -> pa.Table:

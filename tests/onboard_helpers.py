@@ -5,7 +5,7 @@ from __future__ import annotations
 import pyarrow as pa
 
 from pipeline.onboard.config import OnboardConfig
-from pipeline.onboard.engines.local import run_onboarding
+from pipeline.onboard.run import run_onboarding
 from pipeline.store import Store
 
 VOLATILE = {"run_id", "seen_at", "at"}

@@ -9,7 +9,7 @@ from test_eval_synth import make_toy_library
 
 from pipeline.evaluate.cli import main
 from pipeline.onboard.config import OnboardConfig
-from pipeline.onboard.engines.local import run_onboarding
+from pipeline.onboard.run import run_onboarding
 
 
 @pytest.fixture(scope="module")

@@ -289,3 +289,21 @@ def test_captions_embed_closer_to_matching_prompts(captioner, minilm):
     prompts = minilm.encode_text(["the yellow mustard bottle", "a red ball", "a blue box"])
     sims = prompts @ minilm.encode_text(captions).T
     assert list(sims.argmax(axis=1)) == [0, 1, 2], np.round(sims, 3)
+
+
+def test_convex_hull_area_equals_qhull():
+    from scipy.spatial import ConvexHull
+
+    from pipeline.models.offline_imageops import convex_hull_area
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        h, w = rng.integers(1, 40, 2)
+        by, bx = np.nonzero(rng.random((h, w)) < rng.random())
+        if len(bx) == 0:
+            continue
+        corners = np.concatenate(
+            [np.stack([bx + ox, by + oy], 1) for ox in (0.0, 1.0) for oy in (0.0, 1.0)]
+        ).astype(np.float64)
+        assert convex_hull_area(corners) == pytest.approx(ConvexHull(corners).volume, rel=1e-12)
+    assert convex_hull_area(np.array([[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]])) == 0.0  # collinear

@@ -11,8 +11,8 @@ from conftest import SAMPLE_LIBRARY
 
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.config import OnboardConfig
-from pipeline.onboard.engines.local import run_onboarding
 from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.run import run_onboarding
 from pipeline.store import Store
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install 'oscar-pipeline[ray]')")

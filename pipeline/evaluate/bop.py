@@ -16,9 +16,9 @@ import json
 import re
 from pathlib import Path
 
-from pipeline.evaluate.datasets import Query, QueryFileError
 from pipeline.evaluate.library import Library
 from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE, prompt_for
+from pipeline.evaluate.records import Query, QueryFileError
 
 
 def load_bop(

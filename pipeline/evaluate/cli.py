@@ -10,7 +10,16 @@ import shlex
 import sys
 from pathlib import Path
 
-from pipeline.cli_common import add_model_args, fail, model_overrides
+from pipeline.cli_common import (
+    OneLineParser,
+    add_model_args,
+    fail,
+    float_range,
+    model_overrides,
+    non_negative_int,
+    number_list,
+    positive_int,
+)
 
 OFFLINE_NOTE = (
     "Offline profile: attribute captioner + MiniLM text encoder + classical image descriptor, no downloaded "
@@ -19,17 +28,8 @@ OFFLINE_NOTE = (
 )
 
 
-def _floats(text: str) -> tuple[float, ...]:
-    """``0.1,0.2`` or ``START:STOP:STEP`` (inclusive)."""
-    if ":" in text:
-        a, b, s = (float(x) for x in text.split(":"))
-        n = int(round((b - a) / s)) + 1
-        return tuple(round(a + i * s, 6) for i in range(n))
-    return tuple(float(x) for x in text.split(",") if x.strip())
-
-
-def _ints(text: str) -> tuple[int, ...]:
-    return tuple(int(round(x)) for x in _floats(text))
+_floats = number_list(float, -1.0, 1.0)  # tau values: ``0.1,0.2`` or ``START:STOP:STEP`` (inclusive)
+_ints = number_list(int, 1)  # fallback top-k values
 
 
 def _words(text: str) -> tuple[str, ...]:
@@ -41,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.evaluate.metrics import MAP_NORMALISERS, METRIC_SETS, TIE_POLICIES
     from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE
 
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.evaluate",
         description="Evaluate retrieval on a query set: the paper's metrics, tau/top-k/mode/ROI sweeps, "
         "prompt styles, and a report (metrics.json, report.md, report.html, plots, failure gallery). "
@@ -52,11 +52,13 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--queries", metavar="PATH", help="JSONL/JSON/CSV query file or BOP dataset folder")
     src.add_argument(
         "--synthetic",
-        type=int,
+        type=positive_int,
         metavar="N",
         help="generate N synthetic queries per store mesh into OUT/synthetic",
     )
-    src.add_argument("--seed", type=int, default=0, help="seed of the synthetic generator (default: 0)")
+    src.add_argument(
+        "--seed", type=non_negative_int, default=0, help="seed of the synthetic generator (default: 0)"
+    )
     src.add_argument(
         "--photo-dir",
         action="append",
@@ -69,10 +71,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_PROMPT_TEMPLATE,
         help="synthetic/BOP prompt; {name} = mesh name without its id (default: %(default)r)",
     )
-    src.add_argument("--limit", type=int, help="evaluate only the first N queries")
+    src.add_argument("--limit", type=positive_int, help="evaluate only the first N queries")
     src.add_argument("--bop-objects", metavar="JSON", help="BOP object id -> mesh (and prompt, label) map")
-    src.add_argument("--bop-min-visib", type=float, default=0.1, help="skip BOP instances less visible")
-    src.add_argument("--bop-max-per-object", type=int, help="at most N BOP queries per object id")
+    src.add_argument(
+        "--bop-min-visib", type=float_range(0.0, 1.0), default=0.1, help="skip BOP instances less visible"
+    )
+    src.add_argument("--bop-max-per-object", type=positive_int, help="at most N BOP queries per object id")
     rel = p.add_argument_group("relevance and metrics")
     rel.add_argument(
         "--class-pattern",
@@ -108,10 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
     base = p.add_argument_group("base setting")
     base.add_argument("--mode", default="two-stage", choices=["two-stage", "text-only", "image-only"])
     base.add_argument(
-        "--tau", type=float, help="stage-1 threshold (default: the retriever's, the paper's 0.37)"
+        "--tau",
+        type=float_range(-1.0, 1.0),
+        help="stage-1 threshold (default: the retriever's, the paper's 0.37)",
     )
     base.add_argument(
-        "--fallback-k", type=int, default=10, help="stage-1 top-k when none passes tau (default: 10)"
+        "--fallback-k", type=positive_int, default=10, help="stage-1 top-k when none passes tau (default: 10)"
     )
     base.add_argument(
         "--fallback-unit",
@@ -155,7 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="also break the base metrics down by a query field or metadata key (repeatable; default: "
         "background, when the queries have it)",
     )
-    out.add_argument("--gallery", type=int, default=24, help="failures shown in the gallery (default: 24)")
+    out.add_argument(
+        "--gallery", type=non_negative_int, default=24, help="failures shown in the gallery (default: 24)"
+    )
     out.add_argument("--no-plots", action="store_true", help="skip the matplotlib figures")
     out.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
@@ -323,7 +331,7 @@ def _style_stores(args, out: Path, models: dict | None = None) -> dict[str, str]
         if not args.library:
             raise ValueError("--onboard-styles needs --library DIR (the library to onboard per style)")
         from pipeline.onboard.config import OnboardConfig
-        from pipeline.onboard.engines.local import run_onboarding
+        from pipeline.onboard.run import run_onboarding
 
         root = Path(args.styles_dir or out / "stores")
         reuse = _onboarded_from(args.store) == {str(Path(args.library).resolve())}

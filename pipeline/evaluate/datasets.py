@@ -17,33 +17,13 @@ from __future__ import annotations
 import csv
 import json
 import os
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from pipeline.evaluate.records import Query, QueryFileError
+
+__all__ = ["QUERY_FILE_SUFFIXES", "Query", "QueryFileError", "load_queries", "write_queries"]
+
 QUERY_FILE_SUFFIXES = (".jsonl", ".json", ".csv")
-
-
-@dataclass
-class Query:
-    """One evaluation query: an image, a prompt, optionally where the object is, and what is correct."""
-
-    query_id: str
-    image: str  # absolute path
-    prompt: str
-    expected: list[str]  # mesh_id, path or name of each correct mesh
-    box: tuple[float, float, float, float] | None = None  # x0, y0, x1, y1 in pixels (x1, y1 exclusive)
-    mask: str | None = None  # absolute path of a binary mask PNG (non-zero = object)
-    label: str | None = None  # class label for class-level relevance
-    meta: dict = field(default_factory=dict)
-
-    def to_json(self) -> dict:
-        d = asdict(self)
-        d["box"] = list(self.box) if self.box else None
-        return d
-
-
-class QueryFileError(ValueError):
-    """A query file that cannot be read; the message names the file and line."""
 
 
 def load_queries(path: str | os.PathLike, **bop_options) -> list[Query]:

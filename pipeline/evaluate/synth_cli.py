@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from pipeline.cli_common import fail
+from pipeline.cli_common import OneLineParser, fail, image_size, non_negative_int, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -13,7 +13,7 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN
     from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE
 
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.evaluate synth",
         description="Render every library mesh at novel viewpoints over varied backgrounds, with exact masks; "
         "write DIR/queries.jsonl, DIR/images, DIR/masks and DIR/synth_config.json (seeded, deterministic).",
@@ -22,8 +22,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--store", help="use the store's active meshes (expected model = mesh_id)")
     src.add_argument("--library", help="use a library folder (expected model = path in the library)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--per-mesh", type=int, default=5, help="queries per mesh (default: 5)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--per-mesh", type=positive_int, default=5, help="queries per mesh (default: 5)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default: 0)")
     p.add_argument(
         "--photo-dir", action="append", default=[], help="photos for background crops (repeatable)"
     )
@@ -43,8 +43,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_CLASS_PATTERN,
         help="regex whose first group is the class label (default: %(default)r)",
     )
-    p.add_argument("--size", default="640x480", help="image size WxH (default: %(default)s)")
-    p.add_argument("--limit", type=int, help="only the first N meshes")
+    p.add_argument(
+        "--size",
+        type=image_size(),
+        default=(640, 480),
+        help="image size WxH, sides 16..8192 (default: 640x480)",
+    )
+    p.add_argument("--limit", type=positive_int, help="only the first N meshes")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -58,7 +63,7 @@ def main(argv: list[str]) -> int:
     from pipeline.store import StoreError
 
     try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
+        w, h = args.size
         names = json.loads(Path(args.names).read_text()) if args.names else {}
         cfg = SynthConfig(
             per_mesh=args.per_mesh,

@@ -26,18 +26,37 @@ class LoadedMesh:
 
 
 def load_mesh(
-    path: str, fmt: str, *, max_faces: int, up: str = "auto", max_texture: int = 1024
+    path: str,
+    fmt: str,
+    *,
+    max_faces: int,
+    up: str = "auto",
+    max_texture: int = 1024,
+    max_texture_pixels: int | None = None,
 ) -> LoadedMesh:
-    """Load ``path``; raise :class:`MeshError` with a one-line reason for unusable meshes."""
+    """Load ``path``; raise :class:`MeshError` with a one-line reason for unusable meshes.
+
+    Textures the file references must decode and hold at most ``max_texture_pixels`` pixels (a
+    decompression-bomb guard): a texture that fails is an error, never a silently untextured mesh. OBJ
+    files are checked for truncation (face lines parsed against face lines present, a cut last line).
+    """
     import trimesh
 
+    from pipeline.mesh.textures import check_textures, declared_textures, textures_loaded
+
+    _require_file(path)
+    textures = declared_textures(path, fmt)
+    check_textures(path, textures, max_texture_pixels)
     declared = quick_face_count(path, fmt)
     if declared is not None and declared > max_faces:
         raise MeshError(f"too many faces: {declared:,} > --max-faces {max_faces:,}")
+    if fmt == "obj":
+        _check_obj_tail(path)
     try:
-        loaded = trimesh.load(path, file_type=fmt, process=False, maintain_order=True)
+        with _pixel_limit(max_texture_pixels):
+            loaded = trimesh.load(path, file_type=fmt, process=False, maintain_order=True)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise MeshError(f"cannot parse {fmt.upper()} file: {type(exc).__name__}: {str(exc)[:160]}") from None
+        raise MeshError(f"cannot parse {fmt.upper()} file: {_parse_reason(exc, fmt)}") from None
     if isinstance(loaded, trimesh.Scene):
         geoms = [g for g in loaded.dump(concatenate=False) if isinstance(g, trimesh.Trimesh)]
     elif isinstance(loaded, trimesh.Trimesh):
@@ -49,6 +68,14 @@ def load_mesh(
         raise MeshError("empty mesh: no faces")
     n_faces = int(sum(len(g.faces) for g in geoms))
     n_vertices = int(sum(len(g.vertices) for g in geoms))
+    if fmt == "obj" and declared is not None and n_faces < declared:
+        raise MeshError(
+            f"truncated or malformed OBJ: {declared:,} face lines but only {n_faces:,} faces parsed"
+        )
+    if textures and not textures_loaded(geoms):
+        raise MeshError(
+            f"texture {textures[0]!r} was not applied (unsupported or corrupt image?): refusing a blank mesh"
+        )
     if n_faces > max_faces:
         raise MeshError(f"too many faces: {n_faces:,} > --max-faces {max_faces:,}")
     verts = np.concatenate([np.asarray(g.vertices, dtype=np.float64) for g in geoms])
@@ -83,6 +110,77 @@ def load_mesh(
         scale_to_unit=scale,
         sample_points=pts,
     )
+
+
+def _require_file(path: str) -> None:
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise MeshError("mesh file not found (deleted or moved during the run?)") from None
+    except OSError as exc:
+        raise MeshError(f"cannot read mesh file: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise MeshError("mesh path is not a regular file (FIFO, socket or device?)")
+
+
+def _parse_reason(exc: Exception, fmt: str) -> str:
+    if fmt == "obj" and isinstance(exc, IndexError):
+        return f"a face references a vertex that does not exist ({str(exc)[:120]})"
+    return f"{type(exc).__name__}: {str(exc)[:160]}"
+
+
+def _check_obj_tail(path: str) -> None:
+    """Raise for an OBJ whose last line was cut (no final newline and an incomplete record)."""
+    with open(path, "rb") as fh:
+        fh.seek(0, 2)
+        size = fh.tell()
+        fh.seek(max(0, size - 4096))
+        tail = fh.read()
+    if not tail or tail.endswith((b"\n", b"\r")):
+        return
+    last = tail.rsplit(b"\n", 1)[-1].split()
+    if not last:
+        return
+    kind, refs = last[0], last[1:]
+    cut = False
+    if kind == b"f":
+        shapes = {r.count(b"/") for r in refs}
+        cut = len(refs) < 3 or any(r.endswith(b"/") or not r.split(b"/")[0] for r in refs) or len(shapes) > 1
+    elif kind in (b"v", b"vn"):
+        cut = len(refs) < 3
+    if cut:
+        raise MeshError(
+            f"truncated OBJ file: the last line is incomplete ({b' '.join(last)[:60].decode('latin-1')!r})"
+        )
+
+
+class _pixel_limit:
+    """Make PIL refuse images above ``limit`` pixels while trimesh decodes textures (glb, embedded)."""
+
+    def __init__(self, limit: int | None):
+        self.limit = limit
+
+    def __enter__(self):
+        import warnings
+
+        from PIL import Image
+
+        self._old = Image.MAX_IMAGE_PIXELS
+        self._warn = warnings.catch_warnings()
+        self._warn.__enter__()
+        if self.limit:
+            Image.MAX_IMAGE_PIXELS = self.limit
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+        return self
+
+    def __exit__(self, *exc):
+        from PIL import Image
+
+        Image.MAX_IMAGE_PIXELS = self._old
+        self._warn.__exit__(*exc)
 
 
 def quick_face_count(path: str, fmt: str) -> int | None:

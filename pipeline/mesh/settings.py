@@ -27,6 +27,14 @@ class RenderConfig:
     up: str = "auto"  # "auto" (z up; y up for glTF) | "z" | "y"
     extra_bg_view: bool = False  # reference scripts: view 0 again on black, an extra stage-2 view
 
+    def __post_init__(self) -> None:
+        import math
+
+        if not 16 <= self.resolution <= 8192:
+            raise ValueError(f"resolution must be 16..8192 pixels, got {self.resolution}")
+        if not math.isfinite(self.upper_ring_offset_deg):
+            raise ValueError(f"upper ring offset must be a finite angle, got {self.upper_ring_offset_deg}")
+
     def fingerprint(self) -> str:
         d = asdict(self)
         if not d["extra_bg_view"]:

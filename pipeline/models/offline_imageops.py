@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageChops
 from scipy import ndimage
-from scipy.spatial import ConvexHull, QhullError
 
 #: the uniform background of renders and query ROIs
 BACKGROUND_RGB = (205, 205, 205)
@@ -213,10 +212,7 @@ def silhouette(filled: np.ndarray, sectors: int = 16) -> Silhouette | None:
     corners = np.concatenate(
         [np.stack([bx + ox, by + oy], 1) for ox in (0.0, 1.0) for oy in (0.0, 1.0)], axis=0
     ).astype(np.float64)
-    try:
-        hull_area = ConvexHull(corners).volume
-    except (QhullError, ValueError):
-        hull_area = float(h * w)
+    hull_area = convex_hull_area(corners) or float(h * w)
     solidity = float(min(area / max(hull_area, 1e-6), 1.0))
 
     symmetry = float((m & m[:, ::-1]).sum() / max((m | m[:, ::-1]).sum(), 1))
@@ -267,3 +263,38 @@ def silhouette(filled: np.ndarray, sectors: int = 16) -> Silhouette | None:
         radial=radial,
         hu=hu,
     )
+
+
+def convex_hull_area(points: np.ndarray) -> float:
+    """Area of the convex hull of 2-D ``points`` (0.0 when degenerate): Andrew's monotone chain.
+
+    Replaces ``scipy.spatial.ConvexHull(points).volume``, whose import (all of scipy.spatial) cost a cold
+    query more than the hull itself; on pixel-corner coordinates both are exact (tests compare them).
+    Only each row's leftmost and rightmost point can be a hull vertex, so those are all it looks at.
+    """
+    if len(points) < 3:
+        return 0.0
+    ys, inverse = np.unique(points[:, 1], return_inverse=True)
+    lo = np.full(len(ys), np.inf)
+    hi = np.full(len(ys), -np.inf)
+    np.minimum.at(lo, inverse, points[:, 0])
+    np.maximum.at(hi, inverse, points[:, 0])
+    pts = sorted({(float(x), float(y)) for x, y in zip(np.r_[lo, hi], np.r_[ys, ys], strict=True)})
+    if len(pts) < 3:
+        return 0.0
+
+    def half(seq):
+        chain: list[tuple[float, float]] = []
+        for p in seq:
+            while len(chain) >= 2:
+                (ax, ay), (bx, by) = chain[-2], chain[-1]
+                if (bx - ax) * (p[1] - ay) - (by - ay) * (p[0] - ax) > 0:
+                    break
+                chain.pop()
+            chain.append(p)
+        return chain[:-1]
+
+    hull = half(pts) + half(reversed(pts))
+    x = np.array([p[0] for p in hull])
+    y = np.array([p[1] for p in hull])
+    return float(abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) / 2.0)

@@ -6,14 +6,26 @@ import argparse
 import json
 import sys
 
-from pipeline.cli_common import add_model_args, fail, model_overrides
+from pipeline.cli_common import (
+    OneLineParser,
+    add_model_args,
+    fail,
+    float_range,
+    int_range,
+    model_overrides,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
+from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipeline.onboard.config import STAGES
+    from pipeline.onboard.config import DEFAULT_MAX_TEXTURE_PIXELS
+    from pipeline.onboard.stages import STAGE_NAMES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.onboard",
         description="Render, caption and embed every new mesh of LIBRARY_DIR into the store (incremental).",
     )
@@ -40,10 +52,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="also render view 0 on black as an extra stage-2 (DINOv2) reference view, not captioned "
         "(the reference scripts' _bg render)",
     )
-    p.add_argument("--resolution", type=int, default=512, help="view size in pixels (default: 512)")
+    p.add_argument(
+        "--resolution",
+        type=int_range(16, 8192),
+        default=512,
+        help="view size in pixels, 16..8192 (default: 512)",
+    )
     p.add_argument(
         "--upper-ring-offset",
-        type=float,
+        type=float_range(-360.0, 360.0),
         default=45.0,
         help="azimuth offset in degrees of the +15 deg ring (default: 45; 0 aligns both rings)",
     )
@@ -51,18 +68,35 @@ def build_parser() -> argparse.ArgumentParser:
         "--up", default="auto", choices=["auto", "z", "y"], help="up axis of the meshes (auto: z, y for glTF)"
     )
     p.add_argument(
-        "--max-faces", type=int, default=2_000_000, help="meshes with more faces fail (default: 2M)"
+        "--max-faces", type=positive_int, default=2_000_000, help="meshes with more faces fail (default: 2M)"
     )
-    p.add_argument("--render-timeout", type=float, default=120.0, help="seconds per mesh before it fails")
     p.add_argument(
-        "--workers", type=int, default=2, help="render processes (0: render in-process, no timeout)"
+        "--max-texture-pixels",
+        type=positive_int,
+        default=DEFAULT_MAX_TEXTURE_PIXELS,
+        help="meshes with a larger texture (width x height) fail: a decompression-bomb guard "
+        f"(default: {DEFAULT_MAX_TEXTURE_PIXELS:,} = 8192 x 8192)",
     )
-    p.add_argument("--batch-size", type=int, default=16, help="meshes per commit")
+    p.add_argument(
+        "--render-timeout",
+        type=float_range(0.0, 86400.0, lo_open=True),
+        default=120.0,
+        help="seconds per mesh before it fails, > 0 (default: 120)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int_range(0, 256),
+        default=2,
+        help="render processes (0: render in-process, no timeout)",
+    )
+    p.add_argument(
+        "--batch-size", type=int_range(1, 100_000), default=16, help="meshes per commit (default: 16)"
+    )
     p.add_argument(
         "--force",
         action="append",
         default=[],
-        choices=list(STAGES),
+        choices=list(STAGE_NAMES),
         help="redo STAGE (and what depends on it) for every mesh; repeatable",
     )
     p.add_argument(
@@ -74,15 +108,22 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="Ray cluster for --engine ray: 'auto', 'ray://HEAD:10001' (default: start a local instance)",
     )
-    p.add_argument("--ray-render-workers", type=int, default=0, help="Ray render actors (0: one per CPU)")
-    p.add_argument("--ray-caption-actors", type=int, default=1, help="Ray captioner actors (default: 1)")
-    p.add_argument("--ray-embed-actors", type=int, default=1, help="Ray actors per encoder (default: 1)")
+    p.add_argument(
+        "--ray-render-workers", type=non_negative_int, default=0, help="Ray render actors (0: one per CPU)"
+    )
+    p.add_argument(
+        "--ray-caption-actors", type=positive_int, default=1, help="Ray captioner actors (default: 1)"
+    )
+    p.add_argument(
+        "--ray-embed-actors", type=positive_int, default=1, help="Ray actors per encoder (default: 1)"
+    )
     p.add_argument(
         "--ray-gpus-per-actor",
-        type=float,
+        type=positive_float,
         default=None,
         help="GPUs per model actor (default: encoders a quarter, captioners share the rest)",
     )
+    add_torch_threads_arg(p, "every core (onboarding is throughput work)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     return p
@@ -98,6 +139,10 @@ def main(argv: list[str] | None = None) -> int:
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
+    if args.torch_threads is not None:  # unset: torch's own default (every core)
+        from pipeline.threads import apply_torch_threads
+
+        apply_torch_threads(args.torch_threads)
     try:
         cfg = OnboardConfig(
             profile=args.profile,
@@ -111,9 +156,10 @@ def main(argv: list[str] | None = None) -> int:
                 extra_bg_view=args.extra_bg_view,
             ),
             max_faces=args.max_faces,
+            max_texture_pixels=args.max_texture_pixels,
             render_timeout_s=args.render_timeout,
             workers=args.workers,
-            batch_size=max(1, args.batch_size),
+            batch_size=args.batch_size,
             retry_failed=args.retry_failed,
             force=tuple(args.force),
             engine=args.engine,
@@ -130,15 +176,17 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
 
     from pipeline.models.registry import ModelLoadError
-    from pipeline.onboard.engines.local import run_onboarding
     from pipeline.onboard.engines.ray import RayEngineError
     from pipeline.onboard.engines.render_pool import RenderSetupError
+    from pipeline.onboard.run import run_onboarding
     from pipeline.store import StoreError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
     except (StoreError, ModelLoadError, RenderSetupError, RayEngineError) as exc:
         return fail(str(exc))
+    except OSError as exc:  # a library or store file system failing outside a commit
+        return fail(f"I/O error on the store or library: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     except KeyboardInterrupt:
         return fail("interrupted: committed batches are kept; run the same command again to resume", 130)
     if args.json:

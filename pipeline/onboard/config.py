@@ -1,15 +1,17 @@
-"""Onboarding configuration and the per-stage fingerprints that key incremental work."""
+"""Onboarding configuration (:class:`OnboardConfig`) and its resolution for one run (:class:`RunSpec`:
+the profile and every step's fingerprint and table, computed once and passed down)."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from pipeline.fingerprint import fingerprint
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.stages import STAGE_NAMES, Step, resolve_steps
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
 
-STAGES = ("render", "caption", "embed_text", "embed_image")
+#: Textures with more pixels than this fail their mesh (decompression-bomb guard); ``--max-texture-pixels``.
+DEFAULT_MAX_TEXTURE_PIXELS = 8192 * 8192
 
 
 @dataclass(frozen=True)
@@ -21,6 +23,7 @@ class OnboardConfig:
     prompt_style: str = DEFAULT_PROMPT_STYLE
     render: RenderConfig = field(default_factory=RenderConfig)
     max_faces: int = 2_000_000
+    max_texture_pixels: int = DEFAULT_MAX_TEXTURE_PIXELS  # not fingerprinted: a guard, not a look
     render_timeout_s: float = 120.0
     workers: int = 2
     batch_size: int = 16
@@ -35,9 +38,18 @@ class OnboardConfig:
             raise ValueError(
                 f"unknown --prompt-style {self.prompt_style!r}; choose from {', '.join(PROMPT_STYLES)}"
             )
-        bad = [s for s in self.force if s not in STAGES]
+        import math
+
+        if not (math.isfinite(self.render_timeout_s) and self.render_timeout_s > 0):
+            raise ValueError(f"render timeout must be > 0 seconds, got {self.render_timeout_s}")
+        for name in ("max_faces", "max_texture_pixels", "batch_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0:
+            raise ValueError(f"workers must be >= 0, got {self.workers}")
+        bad = [s for s in self.force if s not in STAGE_NAMES]
         if bad:
-            raise ValueError(f"unknown --force stage {bad[0]!r}; stages: {', '.join(STAGES)}")
+            raise ValueError(f"unknown --force stage {bad[0]!r}; stages: {', '.join(STAGE_NAMES)}")
 
     def get_profile(self) -> Profile:
         return get_profile(self.profile, self.model_overrides)
@@ -46,42 +58,56 @@ class OnboardConfig:
     def prompt(self) -> str:
         return PROMPT_STYLES[self.prompt_style]
 
-    def image_roles(self) -> list[str]:
-        """Roles whose encoders embed the views: the stage-2 encoder, plus CLIP image where the profile has it."""
-        p = self.get_profile()
-        return ["view_encoder"] + (["clip_image_encoder"] if p.clip_image_encoder is not None else [])
+    def resolve(self) -> RunSpec:
+        """The profile and the steps of a run with this config (raises ValueError for a bad override)."""
+        profile = self.get_profile()
+        return RunSpec(self, profile, resolve_steps(self, profile))
 
     def fingerprints(self) -> dict[str, str]:
-        """Fingerprint of each stage's config and model, chained through its inputs."""
-        p = self.get_profile()
-        render_fp = self.render.fingerprint()
-        caption_fp = fingerprint(
-            {"model": p.captioner.key(), "opts": p.captioner.options, "prompt": self.prompt, "in": render_fp}
-        )
-        fps = {
-            "render": render_fp,
-            "caption": caption_fp,
-            "embed_text": fingerprint(
-                {"model": p.text_encoder.key(), "opts": p.text_encoder.options, "in": caption_fp}
-            ),
-        }
-        for role in self.image_roles():
-            spec = getattr(p, role)
-            fps[f"embed_image:{role}"] = fingerprint(
-                {"model": spec.key(), "opts": spec.options, "in": render_fp}
-            )
-        return fps
+        """Fingerprint of each step's config and model, chained through its inputs."""
+        return self.resolve().fingerprints
 
     def describe(self) -> dict:
         """JSON-ready description stored in the ``runs`` table."""
-        p = self.get_profile()
+        return self.resolve().describe()
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """An :class:`OnboardConfig` resolved once per run: its profile and its steps (one per stage and
+    model role, in stage order), which the planner, the engines and the stages all take from here."""
+
+    cfg: OnboardConfig
+    profile: Profile
+    steps: tuple[Step, ...]
+
+    @property
+    def fingerprints(self) -> dict[str, str]:
+        return {s.key: s.fingerprint for s in self.steps}
+
+    def step(self, key: str) -> Step:
+        return next(s for s in self.steps if s.key == key)
+
+    @property
+    def source(self) -> Step:
+        """The first step (rendering): the one that reads the mesh files."""
+        return self.steps[0]
+
+    @property
+    def downstream(self) -> tuple[Step, ...]:
+        """Every step after the first, in order."""
+        return self.steps[1:]
+
+    def describe(self) -> dict:
+        """JSON-ready description stored in the ``runs`` table."""
+        cfg = self.cfg
         return {
-            "profile": self.profile,
-            "models": {r: (s.key() if s else None) for r, s in p.roles().items()},
-            "prompt_style": self.prompt_style,
-            "prompt": self.prompt,
-            "render": asdict(self.render),
-            "max_faces": self.max_faces,
-            "render_timeout_s": self.render_timeout_s,
-            "fingerprints": self.fingerprints(),
+            "profile": cfg.profile,
+            "models": {r: (s.key() if s else None) for r, s in self.profile.roles().items()},
+            "prompt_style": cfg.prompt_style,
+            "prompt": cfg.prompt,
+            "render": asdict(cfg.render),
+            "max_faces": cfg.max_faces,
+            "render_timeout_s": cfg.render_timeout_s,
+            "fingerprints": self.fingerprints,
         }

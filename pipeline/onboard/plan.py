@@ -13,8 +13,8 @@ import pyarrow.compute as pc
 
 from pipeline import schemas
 from pipeline.mesh.discover import DiscoveryError, FoundFile, identify, walk_library
-from pipeline.onboard.config import OnboardConfig
-from pipeline.store import Store, latest_rows, slug
+from pipeline.onboard.config import RunSpec
+from pipeline.store import Store, latest_rows
 
 
 @dataclass
@@ -26,10 +26,8 @@ class Plan:
     discover_errors: list[tuple[FoundFile, str]]
     removed_rows: list[dict]  # meshes rows marking vanished / replaced files
     new_paths: dict[str, list[FoundFile]]  # mesh_id -> files that need a meshes row
-    render: list[str] = field(default_factory=list)  # mesh_ids, in library order
-    caption: set[str] = field(default_factory=set)
-    embed_text: set[str] = field(default_factory=set)
-    embed_image: dict[str, set[str]] = field(default_factory=dict)  # role -> mesh_ids
+    todo: dict[str, set[str]] = field(default_factory=dict)  # step key -> mesh_ids that need it
+    render: list[str] = field(default_factory=list)  # mesh_ids that need the first step, in library order
     skipped: int = 0  # meshes with nothing left to do
     failed_before: int = 0  # meshes skipped because they failed with the same config before
     n_hashed: int = 0
@@ -42,8 +40,8 @@ class Plan:
         return out
 
     def downstream_ids(self) -> list[str]:
-        """Meshes that need caption or embedding work but no rendering, in library order."""
-        pending = self.caption | self.embed_text | set().union(*self.embed_image.values())
+        """Meshes that need work after the first step but no rendering, in library order."""
+        pending = set().union(*self.todo.values())
         order = list(dict.fromkeys(f.mesh_id for f in self.files))
         render = set(self.render)
         return [m for m in order if m in pending and m not in render]
@@ -73,14 +71,13 @@ def failed_ids(store: Store) -> dict[str, set[str]]:
     return out
 
 
-def make_plan(
-    store: Store, library: str, cfg: OnboardConfig, text_slug: str, image_slugs: dict[str, str]
-) -> Plan:
+def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
     """Discover the library and decide the work of this run."""
     from pathlib import Path
 
     root = str(Path(library).resolve())
-    found = walk_library(root)
+    problems: list[tuple[FoundFile, str]] = []
+    found = walk_library(root, problems)
     state = mesh_state(store, root)
     rows = state.to_pylist()
     by_path: dict[str, list[dict]] = {}
@@ -92,13 +89,16 @@ def make_plan(
         if live:
             current[path] = max(live, key=lambda r: (r["run_id"], r["seen_at"]))
 
-    files, errors, n_hashed = [], [], 0
+    files, errors, n_hashed = [], list(problems), 0
     for f in found:
         cached = current.get(f.source_path)
         try:
             identify(f, cached)
         except DiscoveryError as exc:
             errors.append((f, str(exc)))
+            continue
+        except Exception as exc:  # one file never stops a run
+            errors.append((f, f"{type(exc).__name__}: {exc}"))
             continue
         n_hashed += cached is None or cached["mesh_id"] != f.mesh_id or cached["mtime_ns"] != f.mtime_ns
         files.append(f)
@@ -116,19 +116,24 @@ def make_plan(
             new_paths.setdefault(f.mesh_id, []).append(f)
 
     plan = Plan(root, files, errors, removed_rows, new_paths, n_hashed=n_hashed)
-    fps = cfg.fingerprints()
+    cfg = run.cfg
     failed = failed_ids(store) if not cfg.retry_failed else {}
     force = set(cfg.force)
     ids = list(dict.fromkeys(f.mesh_id for f in files))
 
-    def todo(dataset: str, fp: str, stage: str) -> set[str]:
-        if stage in force:
-            return set(ids)
-        return set(ids) - done_ids(store, dataset, fp)
-
-    bad_render = failed.get(fps["render"], set())
-    need_render = todo("views", fps["render"], "render") - bad_render
-    # a mesh that must be re-rendered needs everything downstream again
+    # a mesh whose rendering failed with this config has nothing to feed the later steps
+    bad_render = failed.get(run.source.fingerprint, set())
+    ok = set(ids) - bad_render
+    for step in run.steps:
+        need = (
+            set(ids)
+            if step.stage.name in force
+            else set(ids) - done_ids(store, step.dataset, step.fingerprint)
+        )
+        if step.input is not None:  # a mesh whose input is redone needs this step again too
+            need |= plan.todo[step.input]
+        plan.todo[step.key] = (need & ok) - failed.get(step.fingerprint, set())
+    need_render = plan.todo[run.source.key]
     plan.render = [m for m in ids if m in need_render]
     for f in files:  # a failed mesh that is rendered again gets a fresh meshes row (active or failed)
         row = current.get(f.source_path)
@@ -139,27 +144,10 @@ def make_plan(
             and f.mesh_id in need_render
         ):
             new_paths.setdefault(f.mesh_id, []).append(f)
-    ok = set(ids) - bad_render
-    plan.caption = ((todo("captions", fps["caption"], "caption") | need_render) & ok) - failed.get(
-        fps["caption"], set()
-    )
-    plan.embed_text = (
-        (todo(f"text_embeddings/{text_slug}", fps["embed_text"], "embed_text") | plan.caption) & ok
-    ) - failed.get(fps["embed_text"], set())
-    for role, s in image_slugs.items():
-        fp = fps[f"embed_image:{role}"]
-        plan.embed_image[role] = (
-            (todo(f"image_embeddings/{s}", fp, "embed_image") | need_render) & ok
-        ) - failed.get(fp, set())
-    busy = set(plan.render) | plan.caption | plan.embed_text | set().union(*plan.embed_image.values())
+    busy = set().union(*plan.todo.values())
+    fps = run.fingerprints.values()
     plan.failed_before = len(
-        {m for m in ids if m in bad_render or any(m in failed.get(fp, ()) for fp in fps.values())} - busy
+        {m for m in ids if m in bad_render or any(m in failed.get(fp, ()) for fp in fps)} - busy
     )
     plan.skipped = len(set(ids) - busy)
     return plan
-
-
-def encoder_slugs(cfg: OnboardConfig) -> tuple[str, dict[str, str]]:
-    """Dataset slugs of the text encoder and of each image encoder role of ``cfg``."""
-    p = cfg.get_profile()
-    return slug(p.text_encoder.key()), {r: slug(getattr(p, r).key()) for r in cfg.image_roles()}

@@ -7,10 +7,16 @@
 
 ``make_roi`` -> ``embed`` -> ``rank`` are the three steps of ``query``; ``rank`` calls no model, so sweeps
 over tau, fallback-k, prompt weight or mode reuse one embedding.
+
+A ``Retriever`` is thread-safe: stage 1 borrows a DuckDB connection per call, models are built once under a
+lock, and the adapters and stage 2 only read shared state. It answers from the store state it opened;
+:meth:`Retriever.reopened` gives one on the latest commits that shares the loaded models (what the HTTP
+service does when :func:`pipeline.query.library.store_version` changes).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Iterable
 
@@ -19,7 +25,7 @@ import numpy as np
 from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
-from pipeline.query.library import StoreTables, check_models, latest_onboarding
+from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
 from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
@@ -41,6 +47,11 @@ class Retriever:
         self.strategy = strategy_for(profile.clip_image_encoder is not None)
         self.load_seconds: dict[str, float] = {}
         self._models: dict[str, object] = dict(models or {})
+        self._model_lock = threading.Lock()
+        # tables.con (candidate_views, mesh lookups) runs one statement at a time
+        self._db_lock = threading.Lock()
+        self.version = None  # store version this state was read at (set by open)
+        self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
         m = tables.meshes
@@ -76,6 +87,7 @@ class Retriever:
         from pipeline.profiles import PROFILES, get_profile
         from pipeline.store import Store
 
+        version = store_version(store_path)  # read first: a commit racing the open is seen next time
         store = Store.open(store_path)
         try:
             onboarding = latest_onboarding(store)
@@ -92,6 +104,16 @@ class Retriever:
             check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
+            r.version = version
+            r._open_args = {
+                "store_path": store_path,
+                "profile": prof.name,
+                "model_overrides": model_overrides,
+                "device": device,
+                "settings": settings,
+                "use_cache": use_cache,
+                "threads": threads,
+            }
             if preload:
                 r.load_models(r.required_roles())
             return r
@@ -104,6 +126,21 @@ class Retriever:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def reopened(self, *, preload: bool = True) -> Retriever:
+        """A new Retriever on the store's latest commits, with the same settings and the already loaded
+        models (no model is loaded twice). This one stays usable until closed."""
+        with self._model_lock:
+            models = dict(self._models)
+        r = Retriever.open(**self._open_args, models=models, preload=False)
+        r.load_seconds = dict(self.load_seconds)
+        if preload:
+            r.load_models(r.required_roles())
+        return r
+
+    def is_stale(self) -> bool:
+        """Whether the store has commits this Retriever does not see (cheap: for polling)."""
+        return store_version(self.store.root) != self.version
 
     def close(self) -> None:
         self.text_filter.close()
@@ -135,11 +172,14 @@ class Retriever:
             return None
         from pipeline.models.registry import create_model
 
-        extra = {} if self.device in (None, "", "auto") else {"device": self.device}
-        t0 = time.perf_counter()
-        adapter = create_model(role, spec, **extra)
-        self.load_seconds[role] = time.perf_counter() - t0
-        self._models[role] = adapter
+        with self._model_lock:  # concurrent first uses build the model once
+            if role in self._models:
+                return self._models[role]
+            extra = {} if self.device in (None, "", "auto") else {"device": self.device}
+            t0 = time.perf_counter()
+            adapter = create_model(role, spec, **extra)
+            self.load_seconds[role] = time.perf_counter() - t0
+            self._models[role] = adapter
         return adapter
 
     # ------------------------------------------------------------------ steps
@@ -336,7 +376,11 @@ class Retriever:
 
     def mesh(self, mesh_id: str) -> dict:
         """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
-        j = self._mesh_id.index(mesh_id)
+        if not hasattr(self, "_row_of"):
+            self._row_of = {m: j for j, m in enumerate(self._mesh_id)}
+        j = self._row_of.get(mesh_id)
+        if j is None:
+            raise QueryError(f"no active mesh {mesh_id!r} in this store")
         return self.tables.meshes.slice(j, 1).to_pylist()[0]
 
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
@@ -349,7 +393,9 @@ class Retriever:
             "render_fingerprint": fps["render"],
             "caption_fingerprint": fps["caption"],
         }
-        return self.tables.con.sql(load_sql("candidate_views"), params=params).to_arrow_table().to_pylist()
+        with self._db_lock:
+            rel = self.tables.con.sql(load_sql("candidate_views"), params=params)
+            return rel.to_arrow_table().to_pylist()
 
 
 def _view_ranking(mesh_idx: np.ndarray, s2, text: np.ndarray | None) -> ViewRanking:

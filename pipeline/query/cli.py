@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli_common import fail
+from pipeline.cli_common import OneLineParser, fail, float_range, int_range, positive_int
+from pipeline.threads import add_torch_threads_arg
 
 ROLES = "captioner, text_encoder, view_encoder, clip_image_encoder, detector, segmenter"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.query",
         description="Find the CAD model in an onboarded store that matches the object a prompt names in a photo.",
     )
@@ -58,13 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     how.add_argument(
         "--threshold",
-        type=float,
+        type=float_range(-1.0, 1.0),
         metavar="TAU",
         help="stage-1 tau (default: paper 0.37, offline 0.50; see docs/query.md)",
     )
     how.add_argument(
         "--fallback-k",
-        type=int,
+        type=positive_int,
         default=10,
         metavar="K",
         help="stage-1 top-k when nothing passes tau (default 10; reference scripts: 15)",
@@ -78,20 +79,26 @@ def build_parser() -> argparse.ArgumentParser:
     )
     how.add_argument(
         "--prompt-weight",
-        type=float,
+        type=float_range(0.0, 1.0),
         metavar="W",
         help="weight of the prompt in the stage-1 query vector (offline default 0.5, paper 0)",
     )
-    how.add_argument("--top", type=int, default=5, metavar="N", help="how many models to list (default 5)")
+    how.add_argument(
+        "--top", type=positive_int, default=5, metavar="N", help="how many models to list (default 5)"
+    )
     how.add_argument(
         "--device", default=None, help="torch device for models and stage 2 (default: cuda if available)"
     )
     how.add_argument(
-        "--threads", type=int, default=None, help="DuckDB threads for stage 1 (default: all cores)"
+        "--threads",
+        type=int_range(1, 1024),
+        default=None,
+        help="DuckDB threads for stage 1 (default: all cores)",
     )
     how.add_argument(
         "--no-cache", action="store_true", help="do not read or write the embedding cache under STORE/_cache"
     )
+    add_torch_threads_arg(how, "half the cores, 1 to 4")
 
     out = p.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print the full result as JSON")
@@ -133,7 +140,8 @@ def _prevalidate(args: argparse.Namespace) -> None:
         load_mask(args.mask, photo, limits.min_roi_side)
 
 
-def _quiet_model_loading() -> None:
+def quiet_model_loading() -> None:
+    """No download bars or tokenizer-fork warnings from Hugging Face libraries (also used by pipeline.serve)."""
     import os
 
     os.environ.setdefault("HF_HUB_DISABLE_PROGRESS_BARS", "1")
@@ -146,6 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     problem = _check_args(args)
     if problem:
         return fail(problem)
+    from pipeline.threads import apply_torch_threads
+
+    apply_torch_threads(args.torch_threads)  # first: before NumPy's BLAS or torch are loaded
     from pipeline.models.registry import ModelLoadError
     from pipeline.query.errors import QueryError
     from pipeline.store import StoreError
@@ -158,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         return fail(str(exc))
     except ValueError as exc:  # --model syntax, unknown roles
         return fail(str(exc))
+    except OSError as exc:  # a store file that vanished or cannot be read
+        return fail(f"cannot read the store {args.store}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     except KeyboardInterrupt:
         return fail("interrupted", 130)
 
@@ -169,7 +182,7 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
 
-    _quiet_model_loading()
+    quiet_model_loading()
     settings_changes = {"prompt_weight": args.prompt_weight}
     retriever = Retriever.open(
         args.store,

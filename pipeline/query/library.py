@@ -138,6 +138,27 @@ class StoreTables:
         return self.store.root.joinpath(*CACHE_DIR) / f"{kind}-{key}.arrow"
 
 
+def store_version(root) -> object:
+    """An opaque token that changes with every commit to the store at ``root``; cheap enough to poll.
+
+    The one place that knows how a store is versioned (the commit log's newest sequence number today):
+    the query service compares tokens to decide when to reopen. ``None`` when the store has no commit.
+    """
+    import pipeline.store as store_module
+
+    own = getattr(store_module, "store_version", None)  # a store backend that versions itself
+    if callable(own):
+        return own(root)
+    from pipeline.store import LOG_DIR
+
+    log = Path(root) / LOG_DIR
+    try:
+        seqs = [int(name[:-5]) for name in os.listdir(log) if name.endswith(".json") and name[:-5].isdigit()]
+    except FileNotFoundError:
+        return None
+    return max(seqs, default=None)
+
+
 def connect_store(store: Store):
     """``pipeline.db.connect`` without the analysts' views (the query path needs only the raw tables)."""
     import inspect

@@ -1,7 +1,9 @@
 """Stage 1, the text filter: DuckDB runs ``sql/stage1_text_filter.sql`` over the caption table.
 
-The table is registered once on a long-lived connection; each query binds its vector, tau and k as
-parameters, so no user text or path ever reaches SQL text.
+The table is registered on warm connections; each query binds its vector, tau and k as parameters, so no
+user text or path ever reaches SQL text. A DuckDB connection runs one statement at a time (and a cursor
+does not see the Arrow tables registered on its parent), so concurrent callers each borrow their own
+connection from a small pool: the Python API and the HTTP service are thread-safe.
 
 Layout: every caption vector is cut into ``SLICES`` equal slices, stored as columns ``e0..e7``
 (``FLOAT[dim/8]``, zero-padded when dim is not a multiple of 8), and the SQL sums eight
@@ -12,7 +14,10 @@ third at 1M rows (docs/performance.md (Query)). The sum is the same inner produc
 
 from __future__ import annotations
 
+import queue
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,22 +84,50 @@ class TextFilter:
         meta = captions.schema.metadata or {}
         self.dim = int(meta.get(b"dim", dim or self.width * SLICES))
         self.n_rows = captions.num_rows
-        self.con = duckdb.connect(":memory:")
-        if threads:
-            self.con.execute("SET threads = ?", [int(threads)])
-        self.con.register("stage1_captions", captions)
+        self.threads = threads
         self.sql = load_sql("stage1_text_filter")
         self._matrix: np.ndarray | None = None
+        self._idle: queue.SimpleQueue = queue.SimpleQueue()  # warm connections not in use
+        self._all: list = []
+        self._lock = threading.Lock()
+        self._duckdb = duckdb
+        self._idle.put(self._connect())  # one warm connection up front (and early errors)
+
+    def _connect(self):
+        con = self._duckdb.connect(":memory:")
+        if self.threads:
+            con.execute("SET threads = ?", [int(self.threads)])
+        con.register("stage1_captions", self.table)  # zero-copy: every connection scans the same Arrow data
+        with self._lock:
+            self._all.append(con)
+        return con
+
+    @contextmanager
+    def connection(self):
+        """Borrow a warm connection (a new one when all are busy; it joins the pool afterwards)."""
+        try:
+            con = self._idle.get_nowait()
+        except queue.Empty:
+            con = self._connect()
+        try:
+            yield con
+        finally:
+            self._idle.put(con)
+
+    @property
+    def con(self):
+        """The first connection (single-threaded callers and tests)."""
+        return self._all[0]
 
     def caption_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(mesh_idx, cosine) of every caption row, in table order (evaluation's view-level text ranking).
 
         The same inner products as the SQL up to float rounding; the dense matrix is built on first use.
         """
-        if self._matrix is None:
+        if self._matrix is None:  # threads racing here build the same matrix; _mesh_idx is set first
             parts = [vectors(self.table, f"e{i}") for i in range(SLICES)]
-            self._matrix = np.concatenate(parts, axis=1) if self.n_rows else np.zeros((0, 1), np.float32)
             self._mesh_idx = self.table.column("mesh_idx").to_numpy().astype(np.int32)
+            self._matrix = np.concatenate(parts, axis=1) if self.n_rows else np.zeros((0, 1), np.float32)
         q = np.zeros(self.width * SLICES, np.float32)
         v = np.asarray(query, dtype=np.float32).reshape(-1)
         if v.shape[0] != self.dim:
@@ -124,7 +157,8 @@ class TextFilter:
             "fallback_k": int(fallback_k),
             "fallback_unit": fallback_unit,
         }
-        out = self.con.execute(self.sql, params).fetchnumpy()
+        with self.connection() as con:
+            out = con.execute(self.sql, params).fetchnumpy()
         seconds = time.perf_counter() - t0
         idx = np.asarray(out["mesh_idx"], dtype=np.int32)
         scores = np.asarray(out["score"], dtype=np.float32)
@@ -132,4 +166,7 @@ class TextFilter:
         return Stage1Result(idx, scores, used, seconds)
 
     def close(self) -> None:
-        self.con.close()
+        with self._lock:
+            cons, self._all = self._all, []
+        for con in cons:
+            con.close()

@@ -2,7 +2,8 @@
 
 Views are held once as a dense ``(n_views, dim)`` tensor on the device (CUDA when available) plus a
 ``(n_meshes, max_views)`` index with -1 for missing views, so scoring C candidates is one gather and one
-batched matrix-vector product: score = max over the candidate's views, best view = its argmax.
+batched matrix-vector product: score = max over the candidate's views, best view = its argmax. On the CPU
+the same arrays are NumPy (no torch import: see :mod:`pipeline.device`).
 """
 
 from __future__ import annotations
@@ -24,20 +25,17 @@ class Stage2Result:
 
 
 def pick_device(device: str | None = None) -> str:
-    import torch
+    from pipeline.device import resolve_device
 
-    if device in (None, "", "auto"):
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return str(device)
+    return resolve_device(device)
 
 
 class ViewReranker:
     """All active meshes' view embeddings, on ``device``."""
 
     def __init__(self, views: pa.Table, n_meshes: int, device: str | None = None) -> None:
-        import torch
-
-        self.device = torch.device(pick_device(device))
+        self.device = pick_device(device)
+        self.numpy = self.device == "cpu"
         self.n_meshes = n_meshes
         mesh_idx = (
             views.column("mesh_idx").to_numpy().astype(np.int64) if views.num_rows else np.zeros(0, np.int64)
@@ -62,6 +60,14 @@ class ViewReranker:
         pad = np.full((n_meshes, max(max_views, 1)), -1, np.int64)
         pad[mesh_idx[order], slot] = order
         self.view_index = view_index
+        if self.numpy:
+            self._pad, self._valid = pad, pad >= 0
+            self._emb = np.array(emb, dtype=np.float32)  # a copy: the cache is memory-mapped
+            self._view_index_t = view_index.astype(np.int64)
+            return
+        import torch
+
+        self.device = torch.device(self.device)
         self._pad = torch.from_numpy(pad).to(self.device)
         self._valid = self._pad >= 0
         self._emb = torch.tensor(
@@ -71,6 +77,8 @@ class ViewReranker:
 
     @property
     def has_views(self) -> np.ndarray:
+        if self.numpy:
+            return self._valid.any(axis=1)
         return self._valid.any(dim=1).cpu().numpy()
 
     def score(
@@ -78,8 +86,6 @@ class ViewReranker:
     ) -> Stage2Result:
         """Scores of ``mesh_idx`` (all meshes when ``None``), in the given order; ``per_view`` also returns
         every view's score (the same matrix the max is taken over: no extra work but the copy)."""
-        import torch
-
         t0 = time.perf_counter()
         n = self.n_meshes if mesh_idx is None else len(mesh_idx)
         if self._emb.shape[0] == 0 or n == 0:
@@ -91,6 +97,10 @@ class ViewReranker:
                 empty,
                 None if empty is None else empty.astype(np.int16),
             )
+        if self.numpy:
+            return self._score_numpy(query, mesh_idx, per_view, t0)
+        import torch
+
         q = torch.from_numpy(np.asarray(query, dtype=np.float32).reshape(-1)).to(self.device)
         if q.shape[0] != self.dim:
             raise ValueError(f"query vector has {q.shape[0]} dims, views have {self.dim}")
@@ -116,3 +126,27 @@ class ViewReranker:
         if not per_view:
             return Stage2Result(scores, views, time.perf_counter() - t0)
         return Stage2Result(scores, views, time.perf_counter() - t0, all_scores, all_ids)
+
+    def _score_numpy(
+        self, query: np.ndarray, mesh_idx: np.ndarray | None, per_view: bool, t0: float
+    ) -> Stage2Result:
+        """:meth:`score` in NumPy (the CPU path)."""
+        q = np.asarray(query, dtype=np.float32).reshape(-1)
+        if q.shape[0] != self.dim:
+            raise ValueError(f"query vector has {q.shape[0]} dims, views have {self.dim}")
+        if mesh_idx is None:
+            pad, valid = self._pad, self._valid
+            s = (self._emb @ q)[np.maximum(pad, 0)]  # every view once, then gathered per mesh
+        else:
+            idx = np.asarray(mesh_idx, dtype=np.int64)
+            pad, valid = self._pad[idx], self._valid[idx]
+            s = self._emb[np.maximum(pad, 0)] @ q  # (C, V, d) @ (d,) -> (C, V)
+        s = np.where(valid, s, np.float32(-np.inf)).astype(np.float32)
+        arg = s.argmax(axis=1)
+        best = s[np.arange(len(s)), arg].astype(np.float32)
+        rows = pad[np.arange(len(pad)), arg]
+        view = np.where(rows >= 0, self._view_index_t[np.maximum(rows, 0)], -1).astype(np.int16)
+        if not per_view:
+            return Stage2Result(best, view, time.perf_counter() - t0)
+        ids = np.where(valid, self._view_index_t[np.maximum(pad, 0)], -1).astype(np.int16)
+        return Stage2Result(best, view, time.perf_counter() - t0, s.copy(), ids)

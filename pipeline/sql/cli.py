@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
+from pipeline.cli_common import OneLineParser, non_negative_int
 from pipeline.sql.output import FORMATS
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m pipeline.sql",
         description="SQL over an OSCAR store: every table and the views of sql/views/ are registered. "
         "Without -c/-f/--audit it opens an interactive shell (statements from stdin when piped).",
@@ -42,7 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--format", default="table", choices=FORMATS, help="output format (default: %(default)s)")
     p.add_argument(
-        "--max-width", type=int, default=60, help="cut table/markdown cells at N characters (0: never)"
+        "--max-width",
+        type=non_negative_int,
+        default=60,
+        help="cut table/markdown cells at N characters (0: never)",
     )
     p.add_argument(
         "--set",
@@ -50,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         help="set a DuckDB variable first, e.g. audit_min_caption_chars=25 (repeatable)",
+    )
+    p.add_argument(
+        "--export-dir",
+        metavar="DIR",
+        help="the one folder COPY ... TO may write to (created; must be outside the store); "
+        "without it SQL cannot write files at all",
     )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
@@ -89,10 +100,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.export_duckdb:
         from pipeline.sql.export import export_duckdb
 
+        root = _local_root(store)
+        if root is not None and root.resolve() in Path(args.export_duckdb).resolve().parents:
+            return fail(
+                f"--export-duckdb {args.export_duckdb} is inside the store {root}: write it elsewhere"
+            )
         try:
             out = export_duckdb(store, args.export_duckdb, overwrite=args.force)
-        except FileExistsError as exc:
-            return fail(str(exc))
+        except OSError as exc:
+            return fail(
+                str(exc) if isinstance(exc, FileExistsError) else f"cannot write {args.export_duckdb}: {exc}"
+            )
         print(f"wrote {out}: open it with `duckdb {out}` (tables <table>_all, views as in docs/analysts.md)")
         return 0
     if args.duckdb_cli:
@@ -101,9 +119,18 @@ def main(argv: list[str] | None = None) -> int:
     import duckdb
 
     from pipeline.db import connect
+    from pipeline.sql.confine import check_export_dir, confine
     from pipeline.sql.session import Printer, run_audits, run_sql, set_variables
 
-    con = connect(store)
+    try:
+        export_dir = check_export_dir(args.export_dir, _local_root(store)) if args.export_dir else None
+    except (ValueError, OSError) as exc:
+        return fail(str(exc))
+    try:
+        con = connect(store)
+    except (OSError, ValueError, RuntimeError, duckdb.Error) as exc:  # a damaged or vanished store file
+        return fail(f"cannot read the store {args.store}: {type(exc).__name__}: {str(exc).splitlines()[0]}")
+    confine(con, export_dir)  # after every relation and view is registered
     printer = Printer(args.format, args.max_width)
     try:
         set_variables(con, _variables(args.set))
@@ -124,6 +151,12 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.sql.shell import Shell
 
     return Shell(con, printer).run()
+
+
+def _local_root(store) -> Path | None:
+    from pipeline.store import Store
+
+    return store.root if isinstance(store, Store) else None
 
 
 def _exec_duckdb_cli(store) -> int:

@@ -32,13 +32,18 @@ class Printer:
         print(render(columns, rows, self.fmt, self.max_width), file=self.out)
 
 
-def open_store_connection(store_path: str):
-    """A DuckDB connection over the committed state of the store at ``store_path`` (read-only)."""
+def open_store_connection(store_path: str, export_dir: str | None = None):
+    """A confined DuckDB connection over the committed state of the store at ``store_path`` (read-only;
+    ``COPY ... TO`` only under ``export_dir``)."""
     from pipeline.db import connect
+    from pipeline.sql.confine import check_export_dir, confine
     from pipeline.store import Store
 
     store = Store.open(store_path)
-    return connect(store)
+    out = check_export_dir(export_dir, store.root) if export_dir else None
+    con = connect(store)
+    confine(con, out)
+    return con
 
 
 def set_variables(con, values: dict[str, str]) -> None:
@@ -68,12 +73,22 @@ def fetch(con, sql: str, params: list | None = None) -> tuple[list[str], list[tu
 
 
 def run_sql(con, sql: str, printer: Printer) -> int:
-    """Run every statement of ``sql`` in order, printing each result set; return the rows printed."""
+    """Run every statement of ``sql`` in order, printing each result set; return the rows printed.
+
+    Statements that would leave the read-only surface are refused (:mod:`pipeline.sql.confine`)."""
     import duckdb
+
+    from pipeline.sql.confine import check_statement, explain_permission_error, is_permission_error
 
     total = 0
     for statement in duckdb.extract_statements(sql):
-        columns, rows = fetch(con, statement.query)
+        check_statement(statement)
+        try:
+            columns, rows = fetch(con, statement.query)
+        except duckdb.Error as exc:
+            if is_permission_error(exc):
+                raise explain_permission_error(exc, con) from None
+            raise
         if not columns or (set(columns) in _STATUS_COLUMNS and statement.type.name != "SELECT"):
             continue
         printer.show(columns, rows)

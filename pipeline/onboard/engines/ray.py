@@ -1,11 +1,11 @@
 """The Ray engine (``--engine ray``): the onboarding stages on Ray Data, committed by the driver.
 
-The driver plans exactly as the local executor does (:func:`pipeline.onboard.plan.make_plan`), streams one row
-per mesh through ``map_batches`` stages (render actors on CPUs, then captioner and encoder actor pools,
-on GPUs where the cluster has them) and commits every ``cfg.batch_size`` finished meshes through the
-local executor's own code (``LocalExecutor._downstream``). Only the driver writes the store, so the
-parts, keys and fingerprints are those of the local engine: either engine can continue the other's
-work. A crashed actor is restarted and its batch retried (``RayOptions.max_retries``); a batch that
+The driver plans exactly as the local engine does (:meth:`Engine.begin`), streams one row per mesh
+through one ``map_batches`` stage per step (render actors on CPUs, then captioner and encoder actor
+pools, on GPUs where the cluster has them) and commits every ``cfg.batch_size`` finished meshes through
+the code the local engine commits with (:meth:`Engine.commit_batch`). Only the driver writes the store,
+so the parts, keys and fingerprints are those of the local engine: either engine can continue the
+other's work. A crashed actor is restarted and its batch retried (``RayOptions.max_retries``); a batch that
 still fails becomes ``errors`` rows (WorkerCrash) and the run goes on.
 """
 
@@ -22,11 +22,18 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.onboard.config import OnboardConfig
-from pipeline.onboard.engines.local import LocalExecutor, RunSummary, _bars, _Timer
+from pipeline.onboard.config import RunSpec
+from pipeline.onboard.engines.base import Engine, RunSummary, Timer, progress_bars
 from pipeline.onboard.engines.ray_options import RayOptions
-from pipeline.onboard.engines.ray_workers import TIMING_COLUMNS, row_schema, unpack
+from pipeline.onboard.engines.ray_workers import (
+    input_keys,
+    part_column,
+    row_schema,
+    timing_columns,
+    unpack,
+)
 from pipeline.onboard.plan import Plan
+from pipeline.onboard.stages import Step
 from pipeline.store import Store, utcnow
 
 
@@ -78,23 +85,22 @@ def plan_layout(
     return Layout(workers, render_cpus, model_cpus, caption_gpus, embed_gpus)
 
 
-class RayExecutor(LocalExecutor):
+class RayEngine(Engine):
     """Runs a :class:`Plan` on Ray Data; models live in the actors, never in the driver."""
 
-    def __init__(self, store: Store, cfg: OnboardConfig, run_id: str, progress: bool = True):
-        super().__init__(store, cfg, run_id, progress=progress)
-        self.roles = cfg.image_roles()
+    def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
+        super().__init__(store, run, run_id, progress)
         self.layout: Layout | None = None
 
     # ------------------------------------------------------------------ run
     def run(self, library: str) -> RunSummary:
         t0 = time.perf_counter()
-        plan, summary = self._begin(library)
+        plan, summary = self.begin(library)
         items = self._items(plan)
         if items:
-            bars = _bars(self.progress, plan)
+            bars = progress_bars(self.progress, self.run_spec, plan)
             try:
-                with _Timer(self.seconds, "ray_start"):
+                with Timer(self.seconds, "ray_start"):
                     started = _start_ray(self.cfg.ray)
                 try:
                     self._run_dataset(plan, items, bars, summary)
@@ -106,36 +112,36 @@ class RayExecutor(LocalExecutor):
             finally:
                 for b in bars.values():
                     b.close()
-        return self._finish(summary, t0)
+        return self.finish(summary, t0)
 
     # ------------------------------------------------------------------ inputs
     def _items(self, plan: Plan) -> list[dict]:
-        """One row per mesh with work: what to render, which stages it needs, where stored inputs are."""
+        """One row per mesh with work: what to render, which steps it needs, where stored inputs are."""
         first_file = plan.file_of()
         rows = []
         for m in plan.render:
             f = first_file[m]
-            rows.append(self._item(plan, m, abs_path=f.abs_path, fmt=f.format, render=True))
-        stored = plan.downstream_ids()
-        rows_stored = [self._item(plan, m) for m in stored]
-        need_views = [r["mesh_id"] for r in rows_stored if r["do_caption"] or r["image_roles"]]
-        need_caps = [r["mesh_id"] for r in rows_stored if r["do_text"] and not r["do_caption"]]
-        views_at = self._locate("views", self.fps["render"], need_views)
-        caps_at = self._locate("captions", self.fps["caption"], need_caps)
+            rows.append(self._item(plan, m, abs_path=f.abs_path, fmt=f.format))
+        rows_stored = [self._item(plan, m) for m in plan.downstream_ids()]
+        # inputs that are not produced in this run are read from the store by the render actors
+        need: dict[str, list[str]] = {k: [] for k in input_keys(self.run_spec)}
         for r in rows_stored:
-            r["views_part"] = views_at.get(r["mesh_id"])
-            r["captions_part"] = caps_at.get(r["mesh_id"])
+            for inp in dict.fromkeys(self.run_spec.step(k).input for k in r["todo"]):
+                if inp is not None and inp not in r["todo"]:
+                    need[inp].append(r["mesh_id"])
+        for inp, ids in need.items():
+            step = self.run_spec.step(inp)
+            at = self._locate(step.dataset, step.fingerprint, ids)
+            for r in rows_stored:
+                r[part_column(inp)] = at.get(r["mesh_id"])
         return rows + rows_stored
 
-    def _item(self, plan: Plan, mesh_id: str, abs_path=None, fmt=None, render=False) -> dict:
+    def _item(self, plan: Plan, mesh_id: str, abs_path=None, fmt=None) -> dict:
         return {
             "mesh_id": mesh_id,
             "abs_path": abs_path,
             "format": fmt,
-            "do_render": render,
-            "do_caption": mesh_id in plan.caption,
-            "do_text": mesh_id in plan.embed_text,
-            "image_roles": [r for r in self.roles if mesh_id in plan.embed_image.get(r, ())],
+            "todo": [s.key for s in self.run_spec.steps if mesh_id in plan.todo[s.key]],
         }
 
     def _locate(self, dataset: str, fp: str, mesh_ids: list[str]) -> dict[str, str]:
@@ -202,102 +208,69 @@ class RayExecutor(LocalExecutor):
     def _build_dataset(self, items: list[dict], resources: dict):
         import ray
 
-        from pipeline.onboard.engines.ray_workers import (
-            CaptionWorker,
-            ImageEmbedWorker,
-            RenderWorker,
-            TextEmbedWorker,
-        )
+        from pipeline.onboard.engines.ray_workers import RenderWorker, StepWorker
 
         opts = self.cfg.ray
         # a crashed actor is always replaced; the batch it held is retried max_retries times, then dropped
         # (and recorded as errors rows by the driver) so one poisonous batch cannot stall the pool
         retry = {"max_restarts": -1, "max_task_retries": opts.max_retries}
-        need_caption = any(r["do_caption"] for r in items)
-        need_text = any(r["do_text"] for r in items)
-        roles = [role for role in self.roles if any(role in r["image_roles"] for r in items)]
-        n_caption = opts.caption_actors if need_caption else 0
-        n_embed = opts.embed_actors * (need_text + len(roles))
-        n_render = sum(r["do_render"] for r in items)
+        steps = [s for s in self.run_spec.downstream if any(s.key in r["todo"] for r in items)]
+        n_caption = sum(opts.caption_actors for s in steps if _captioner_pool(s))
+        n_embed = sum(opts.embed_actors for s in steps if not _captioner_pool(s))
+        source = self.run_spec.source.key
+        n_render = sum(source in r["todo"] for r in items)
         cpus, gpus = resources.get("CPU", 1.0), resources.get("GPU", 0.0)
         layout = plan_layout(opts, cpus, gpus, n_caption, n_embed, n_render)
         logging.getLogger(__name__).info("ray layout: %s", layout.describe())
         self.layout = layout
-        stages = [s for s, on in (("caption", need_caption), ("text", need_text)) if on] + roles
-        last = stages[-1] if stages else None
 
-        schema = row_schema(self.roles)
-        table = pa.Table.from_pylist(items, schema=schema)
+        table = pa.Table.from_pylist(items, schema=row_schema(self.run_spec))
         step = max(1, opts.render_batch_size)
         ds = ray.data.from_arrow([table.slice(i, step) for i in range(0, table.num_rows, step)])
         common = {"batch_format": "pyarrow", "zero_copy_batch": True, **retry}
         ds = ds.map_batches(
             RenderWorker,
-            fn_constructor_args=(self.cfg, self.run_id, self.roles, self.fps, n_render > 0),
+            fn_constructor_args=(self.run_spec, self.run_id, n_render > 0),
             batch_size=step,
             compute=_pool(layout.render_workers),
             num_cpus=layout.render_cpus,
             **common,
         )
-        captioner = {"num_cpus": layout.model_cpus, "num_gpus": layout.caption_gpus or None, **common}
-        encoder = {"num_cpus": layout.model_cpus, "num_gpus": layout.embed_gpus or None, **common}
-        if need_caption:
+        for s in steps:
+            big = _captioner_pool(s)
             ds = ds.map_batches(
-                CaptionWorker,
-                fn_constructor_args=(self.cfg, self.run_id, self.roles, last == "caption"),
-                batch_size=opts.caption_batch_size,
-                compute=_pool(opts.caption_actors),
-                **captioner,
-            )
-        if need_text:
-            ds = ds.map_batches(
-                TextEmbedWorker,
-                fn_constructor_args=(self.cfg, self.run_id, self.roles, last == "text"),
-                batch_size=opts.embed_batch_size,
-                compute=_pool(opts.embed_actors),
-                **encoder,
-            )
-        for role in roles:
-            ds = ds.map_batches(
-                ImageEmbedWorker,
-                fn_constructor_args=(self.cfg, self.run_id, self.roles, role, last == role),
-                batch_size=opts.embed_batch_size,
-                compute=_pool(opts.embed_actors),
-                **encoder,
+                StepWorker,
+                fn_constructor_args=(self.run_spec, self.run_id, s.key, s is steps[-1]),
+                batch_size=opts.caption_batch_size if big else opts.embed_batch_size,
+                compute=_pool(opts.caption_actors if big else opts.embed_actors),
+                num_cpus=layout.model_cpus,
+                num_gpus=(layout.caption_gpus if big else layout.embed_gpus) or None,
+                **common,
             )
         return ds
 
     # ------------------------------------------------------------------ committing
     def _commit_rows(self, plan: Plan, rows: list[dict], bars, summary: RunSummary) -> None:
-        """Commit a batch of finished meshes exactly as the local executor commits its batches."""
-        for name in TIMING_COLUMNS:
-            stage = name[2:]
-            total = sum(r[name] or 0.0 for r in rows)
+        """Commit a batch of finished meshes exactly as the local engine commits its batches."""
+        for name, column in timing_columns(self.run_spec).items():
+            total = sum(r[column] or 0.0 for r in rows)
             if total:
-                self.seconds[stage] = self.seconds.get(stage, 0.0) + total
-        rendered = [r for r in rows if r["do_render"]]
+                self.seconds[name] = self.seconds.get(name, 0.0) + total
+        source = self.run_spec.source
+        rendered = [r for r in rows if source.key in r["todo"]]
         if rendered:
-            render_out = pa.concat_tables([unpack(r["views"]) for r in rendered])
+            source_out = pa.concat_tables([unpack(r[source.key]) for r in rendered])
             meshes_rows = []
             for r in rendered:
-                first = unpack(r["views"]).slice(0, 1).to_pylist()
-                meshes_rows.extend(self._rendered_mesh_rows(plan, r["mesh_id"], first))
+                first = unpack(r[source.key]).slice(0, 1).to_pylist()
+                meshes_rows.extend(self.rendered_mesh_rows(plan, r["mesh_id"], first))
                 summary.rendered += first[0].get("error") is None
-            bars["render"].update(len(rendered))
-            summary.failed += self._downstream(plan, render_out, meshes_rows, bars, self._computed(rendered))
-        stored = [r for r in rows if not r["do_render"]]
+            bars[source.stage.name].update(len(rendered))
+            summary.failed += self.commit_batch(plan, source_out, meshes_rows, bars, _computed(rendered))
+        stored = [r for r in rows if source.key not in r["todo"]]
         if stored:
             ids = pa.table({"mesh_id": pa.array([r["mesh_id"] for r in stored], pa.string())})
-            summary.failed += self._downstream(plan, ids, [], bars, self._computed(stored))
-
-    def _computed(self, rows: list[dict]) -> dict[str, pa.Table]:
-        """Stage outputs of these meshes, per stage, as the stage objects returned them."""
-        out: dict[str, pa.Table] = {}
-        for key in ["caption", "embed_text"] + [f"embed_image:{r}" for r in self.roles]:
-            tables = [t for r in rows if (t := unpack(r.get(key))) is not None]
-            if tables:
-                out[key] = pa.concat_tables(tables)
-        return out
+            summary.failed += self.commit_batch(plan, ids, [], bars, _computed(stored))
 
     def _commit_lost(self, plan: Plan, lost: list[dict]) -> int:
         """Errors rows (and failed meshes rows) for meshes whose batch failed every retry."""
@@ -309,36 +282,49 @@ class RayExecutor(LocalExecutor):
         )
         errors, meshes_rows = [], []
         for r in lost:
-            stage = next(
-                s
-                for s, on in (
-                    ("render", r["do_render"]),
-                    ("caption", r["do_caption"]),
-                    ("embed_text", r["do_text"]),
-                    ("embed_image", True),
-                )
-                if on
-            )
-            fp_key = stage if stage != "embed_image" else f"embed_image:{(r['image_roles'] or self.roles)[0]}"
+            # charged to the first step the mesh needed
+            step = next((s for s in self.run_spec.steps if s.key in r["todo"]), self.run_spec.steps[-1])
             errors.append(
                 {
                     "run_id": self.run_id,
-                    "stage": stage,
+                    "stage": step.stage.name,
                     "mesh_id": r["mesh_id"],
                     "source_path": paths.get(r["mesh_id"]),
-                    "fingerprint": self.fps[fp_key],
+                    "fingerprint": step.fingerprint,
                     "error_type": "WorkerCrash",
                     "reason": reason,
                     "at": now,
                 }
             )
-            if r["do_render"]:
-                meshes_rows.extend(self._rendered_mesh_rows(plan, r["mesh_id"], [{"error": reason}]))
+            if step is self.run_spec.source:
+                meshes_rows.extend(self.rendered_mesh_rows(plan, r["mesh_id"], [{"error": reason}]))
         tables = {"errors": pa.Table.from_pylist(errors, schema=schemas.ERRORS)}
         if meshes_rows:
             tables["meshes"] = pa.Table.from_pylist(meshes_rows, schema=schemas.MESHES)
         self.store.commit(tables, self.run_id)
         return len(lost)
+
+
+def _captioner_pool(step: Step) -> bool:
+    """The captioner (the big model) has its own pool options; every encoder uses the embed options."""
+    return step.role == "captioner"
+
+
+def _computed(rows: list[dict]):
+    """``outputs`` for :meth:`Engine.commit_batch`: the steps' outputs the actors computed for these
+    meshes, as the stage objects returned them (the stages are not run again in the driver)."""
+
+    def outputs(step: Step, mesh_ids: list[str], make_input) -> pa.Table:
+        tables = [t for r in rows if (t := unpack(r.get(step.key))) is not None]
+        out = pa.concat_tables(tables) if tables else None
+        missing = set(mesh_ids) - (set(out.column("mesh_id").to_pylist()) if out is not None else set())
+        if missing:
+            raise RuntimeError(
+                f"{step.key}: no computed rows for {len(missing)} mesh(es), e.g. {min(missing)}"
+            )
+        return out.filter(pc.field("mesh_id").isin(mesh_ids))
+
+    return outputs
 
 
 def _pool(size: int):

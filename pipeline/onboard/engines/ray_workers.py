@@ -1,11 +1,11 @@
 """The Ray engine's workers: the onboarding stages wrapped as Ray Data ``map_batches`` callables.
 
-A row of the Ray dataset is one mesh. What each stage produces for it travels in one Arrow IPC blob per
-stage (``views``, ``caption``, ``embed_text``, ``embed_image:<role>``), so every stage object receives
-exactly the table it receives in the local executor and returns exactly what it returns there; the
-driver unpacks the blobs and commits them through the local executor's code. Which stages a mesh needs
-was decided by the planner (``do_*`` columns); a mesh that failed a stage skips the later ones, as in
-the local executor.
+A row of the Ray dataset is one mesh. What each step produces for it travels in one Arrow IPC blob per
+step, in the column named by the step's key (``render``, ``caption``, ``embed_text``,
+``embed_image:<role>``), so every stage object receives exactly the table it receives in the local
+engine and returns exactly what it returns there; the driver unpacks the blobs and commits them through
+the same code as the local engine. Which steps a mesh needs was decided by the planner (the ``todo``
+column); a mesh that failed a step skips the later ones, as in the local engine.
 """
 
 from __future__ import annotations
@@ -19,35 +19,50 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
-from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.config import RunSpec
+from pipeline.onboard.stages import STAGE_NAMES, Step
 
-#: per-mesh seconds spent in each stage (a batch's time split evenly over the meshes it processed)
-TIMING_COLUMNS = ("t_render", "t_load", "t_caption", "t_embed_text", "t_embed_image")
-#: blobs read from the store for meshes that are not rendered in this run (dropped before the driver)
-STORED_COLUMNS = ("stored_views", "stored_captions")
+#: seconds spent reading stored inputs (the other timings are per stage, ``t_<stage>``)
+LOAD_TIMING = "t_load"
 
 
-def row_schema(roles: list[str]) -> pa.Schema:
-    """Schema of the Ray dataset: one row per mesh; ``roles`` are the image encoder roles of the run."""
+def timing_columns(run: RunSpec) -> dict[str, str]:
+    """Timing name -> its column: per-mesh seconds in each stage (a batch's time split evenly over the
+    meshes it processed), and in loading stored inputs."""
+    names = list(STAGE_NAMES)
+    names.insert(1, "load")
+    return {n: f"t_{n}" for n in names}
+
+
+def input_keys(run: RunSpec) -> list[str]:
+    """Keys of the steps whose output some later step reads (stored rows are shipped for these)."""
+    return list(dict.fromkeys(s.input for s in run.steps if s.input is not None))
+
+
+def part_column(key: str) -> str:
+    """Column naming the store part that holds a mesh's stored output of step ``key``."""
+    return f"part:{key}"
+
+
+def stored_column(key: str) -> str:
+    """Column holding a mesh's stored output of step ``key`` (read by the render actor)."""
+    return f"stored:{key}"
+
+
+def row_schema(run: RunSpec) -> pa.Schema:
+    """Schema of the Ray dataset: one row per mesh, one output blob per step of the run."""
     blob = pa.large_binary()
+    inputs = input_keys(run)
     return pa.schema(
         [
             ("mesh_id", pa.string()),
             ("abs_path", pa.string()),
             ("format", pa.string()),
-            ("do_render", pa.bool_()),
-            ("do_caption", pa.bool_()),
-            ("do_text", pa.bool_()),
-            ("image_roles", pa.list_(pa.string())),
-            ("views_part", pa.string()),  # store part holding the mesh's views (meshes not rendered now)
-            ("captions_part", pa.string()),  # store part holding its captions (text-only work)
-            ("views", blob),
-            ("stored_views", blob),
-            ("stored_captions", blob),
-            ("caption", blob),
-            ("embed_text", blob),
-            *[(f"embed_image:{r}", blob) for r in roles],
-            *[(c, pa.float64()) for c in TIMING_COLUMNS],
+            ("todo", pa.list_(pa.string())),  # keys of the steps this mesh needs
+            *[(part_column(k), pa.string()) for k in inputs],
+            *[(s.key, blob) for s in run.steps],
+            *[(stored_column(k), blob) for k in inputs],
+            *[(c, pa.float64()) for c in timing_columns(run).values()],
         ]
     )
 
@@ -80,10 +95,9 @@ def has_error(table: pa.Table | None) -> bool:
     return table is not None and "error" in table.column_names and pc.any(pc.is_valid(table["error"])).as_py()
 
 
-def failed_so_far(row: dict) -> bool:
-    """Whether any stage already run for this mesh produced an error row (later stages skip it)."""
-    outputs = [c for c in row if c in ("views", "caption", "embed_text") or c.startswith("embed_image:")]
-    return any(has_error(unpack(row[c])) for c in outputs)
+def failed_so_far(row: dict, run: RunSpec) -> bool:
+    """Whether any step already run for this mesh produced an error row (later steps skip it)."""
+    return any(has_error(unpack(row[s.key])) for s in run.steps)
 
 
 class _Fault:
@@ -107,78 +121,62 @@ class _Fault:
 class _Worker:
     """Common batch plumbing: rows in, the same rows with this stage's blob and timing filled, out."""
 
-    stage = ""
-    timing = ""
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], final: bool = False):
-        self.cfg, self.run_id, self.roles, self.final = cfg, run_id, roles, final
-        self.schema = row_schema(roles)
-        self._fault = _Fault(cfg.ray.inject_fault, self.stage)
+    def __init__(self, run: RunSpec, run_id: str, step: Step, final: bool = False):
+        self.run, self.run_id, self.step, self.final = run, run_id, step, final
+        self.cfg = run.cfg
+        self.schema = row_schema(run)
+        self.timing = f"t_{step.stage.name}"
+        self._fault = _Fault(run.cfg.ray.inject_fault, step.stage.name)
 
     def __call__(self, batch: pa.Table) -> pa.Table:
         rows = batch.to_pylist()
         self._fault.maybe_crash(rows)
         t0 = time.perf_counter()
         done = self.process(rows)
-        if done and self.timing:
+        if done:
             share = (time.perf_counter() - t0) / len(done)
             for r in done:
                 r[self.timing] = (r.get(self.timing) or 0.0) + share
         if self.final:  # stored inputs are not needed by the driver: do not ship them back
             for r in rows:
-                for c in STORED_COLUMNS:
-                    r[c] = None
+                for k in input_keys(self.run):
+                    r[stored_column(k)] = None
         return pa.Table.from_pylist(rows, schema=self.schema)
 
     def process(self, rows: list[dict]) -> list[dict]:
-        """Fill this stage's blob of the rows that need it; return those rows."""
+        """Fill this step's blob of the rows that need it; return those rows (timed here)."""
         raise NotImplementedError
-
-
-def _views_input(row: dict) -> pa.Table | None:
-    """The mesh's views as the downstream stages take them (``None``: not rendered or render failed)."""
-    rendered = unpack(row["views"])
-    if rendered is not None:
-        if has_error(rendered):
-            return None
-        return schemas.conform(rendered, schemas.VIEWS)
-    return unpack(row["stored_views"])
 
 
 class RenderWorker(_Worker):
     """Renders meshes (one GL context in one child process per actor, with the per-mesh timeout of
-    ``cfg.render_timeout_s``) and loads the stored views/captions of meshes that are not re-rendered."""
+    ``cfg.render_timeout_s``) and loads the stored inputs of meshes that are not re-rendered."""
 
-    stage = "render"
-    timing = "t_render"
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], fps: dict[str, str], render: bool):
-        super().__init__(cfg, run_id, roles)
-        self.fps = fps
+    def __init__(self, run: RunSpec, run_id: str, render: bool):
+        super().__init__(run, run_id, run.source)
         self._pool = self._stage = None
         if render:  # start the GL context now: a worker without OpenGL fails here, not mesh by mesh
-            if cfg.workers > 0:
+            if self.cfg.workers > 0:
                 from pipeline.onboard.engines.render_pool import RenderPool
 
-                self._pool = RenderPool(cfg, run_id, 1, cfg.render_timeout_s)
+                self._pool = RenderPool(self.cfg, run_id, 1, self.cfg.render_timeout_s, self.step)
             else:
-                from pipeline.onboard.stages import RenderStage
-
-                self._stage = RenderStage(cfg, run_id)
+                self._stage = self.step.stage.runner(self.cfg, run_id, self.step)
 
     def process(self, rows: list[dict]) -> list[dict]:
-        from pipeline.onboard.stages import RENDER_OUT
+        from pipeline.onboard.stages.render import RENDER_OUT
 
-        self._load_stored([r for r in rows if not r["do_render"]])
-        todo = [r for r in rows if r["do_render"]]
+        key = self.step.key
+        self._load_stored([r for r in rows if key not in r["todo"]])
+        todo = [r for r in rows if key in r["todo"]]
         by_id = {r["mesh_id"]: r for r in todo}
         items = [{"mesh_id": r["mesh_id"], "abs_path": r["abs_path"], "format": r["format"]} for r in todo]
         t = time.perf_counter()
         for item, out in self._render(items):
             row = by_id[item["mesh_id"]]
-            row["views"] = pack(pa.Table.from_pylist(out, schema=RENDER_OUT))
+            row[key] = pack(pa.Table.from_pylist(out, schema=RENDER_OUT))
             now = time.perf_counter()
-            row["t_render"], t = now - t, now
+            row[self.timing], t = now - t, now
         return []  # timings are per mesh already
 
     def _render(self, items: list[dict]):
@@ -189,24 +187,22 @@ class RenderWorker(_Worker):
                 yield it, self._stage.render_one(it)
 
     def _load_stored(self, rows: list[dict]) -> None:
-        """Read, from the store parts the driver located, the views and captions these meshes need."""
+        """Read, from the store parts the driver located, the stored inputs these meshes need."""
         t0 = time.perf_counter()
-        for column, part_column, fp_key, key in (
-            ("stored_views", "views_part", "render", "views"),
-            ("stored_captions", "captions_part", "caption", "captions"),
-        ):
+        for key in input_keys(self.run):
+            step = self.run.step(key)
             parts: dict[str, list[dict]] = {}
             for r in rows:
-                if r[part_column]:
-                    parts.setdefault(r[part_column], []).append(r)
+                if r[part_column(key)]:
+                    parts.setdefault(r[part_column(key)], []).append(r)
             for part, rs in parts.items():
-                got = by_mesh(_read_part(part, [r["mesh_id"] for r in rs], self.fps[fp_key], key))
+                got = by_mesh(_read_part(part, [r["mesh_id"] for r in rs], step.fingerprint, step.dataset))
                 for r in rs:
                     if r["mesh_id"] in got:
-                        r[column] = pack(got[r["mesh_id"]])
+                        r[stored_column(key)] = pack(got[r["mesh_id"]])
         if rows:
             for r in rows:
-                r["t_load"] = (time.perf_counter() - t0) / len(rows)
+                r[LOAD_TIMING] = (time.perf_counter() - t0) / len(rows)
 
 
 def _read_part(part: str, mesh_ids: list[str], fingerprint: str, table: str) -> pa.Table:
@@ -220,88 +216,33 @@ def _read_part(part: str, mesh_ids: list[str], fingerprint: str, table: str) -> 
     return t.sort_by([("mesh_id", "ascending"), ("view_index", "ascending")])
 
 
-class CaptionWorker(_Worker):
-    """Captions the views of the meshes that need it, a batch at a time (one captioner per actor)."""
+class StepWorker(_Worker):
+    """Runs one step (captioner or encoder, built when the actor starts) over the meshes that need it:
+    its input is this run's output of the input step, else the stored one."""
 
-    stage = "caption"
-    timing = "t_caption"
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], final: bool = False):
-        super().__init__(cfg, run_id, roles, final)
-        from pipeline.onboard.stages import CaptionStage
-
-        self.step = CaptionStage(cfg, run_id)
-        _ = self.step.model  # load the model when the actor starts, not inside the first batch
-
-    def process(self, rows: list[dict]) -> list[dict]:
-        todo = [(r, v) for r in rows if r["do_caption"] and (v := _views_input(r)) is not None]
-        if not todo:
-            return []
-        out = by_mesh(self.step(pa.concat_tables([v for _, v in todo])))
-        for r, _ in todo:
-            r["caption"] = pack(out[r["mesh_id"]])
-        return [r for r, _ in todo]
-
-
-class TextEmbedWorker(_Worker):
-    """Embeds the captions of the meshes that need it: this run's captions, else the stored ones."""
-
-    stage = "embed_text"
-    timing = "t_embed_text"
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], final: bool = False):
-        super().__init__(cfg, run_id, roles, final)
-        from pipeline.onboard.stages import TextEmbedStage
-
-        self.step = TextEmbedStage(cfg, run_id)
-        _ = self.step.model
+    def __init__(self, run: RunSpec, run_id: str, key: str, final: bool = False):
+        super().__init__(run, run_id, run.step(key), final)
+        self.runner = self.step.stage.runner(self.cfg, run_id, self.step)
+        _ = self.runner.model  # load the model when the actor starts, not inside the first batch
 
     def process(self, rows: list[dict]) -> list[dict]:
         todo = []
         for r in rows:
-            if not r["do_text"] or failed_so_far(r):
+            if self.step.key not in r["todo"] or failed_so_far(r, self.run):
                 continue
-            fresh = unpack(r["caption"])
-            src = (
-                schemas.conform(fresh, schemas.CAPTIONS)
-                if fresh is not None
-                else unpack(r["stored_captions"])
-            )
+            src = self._input(r)
             if src is not None and src.num_rows:
                 todo.append((r, src))
         if not todo:
             return []
-        out = by_mesh(self.step(pa.concat_tables([s for _, s in todo])))
+        out = by_mesh(self.runner(pa.concat_tables([s for _, s in todo])))
         for r, _ in todo:
-            r["embed_text"] = pack(out[r["mesh_id"]])
+            r[self.step.key] = pack(out[r["mesh_id"]])
         return [r for r, _ in todo]
 
-
-class ImageEmbedWorker(_Worker):
-    """Embeds the views of the meshes that need it with one image encoder role."""
-
-    stage = "embed_image"
-    timing = "t_embed_image"
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, roles: list[str], role: str, final: bool = False):
-        super().__init__(cfg, run_id, roles, final)
-        from pipeline.onboard.stages import ImageEmbedStage
-
-        self.role = role
-        self.step = ImageEmbedStage(cfg, run_id, role)
-        _ = self.step.model
-
-    def process(self, rows: list[dict]) -> list[dict]:
-        todo = []
-        for r in rows:
-            if self.role not in (r["image_roles"] or []) or failed_so_far(r):
-                continue
-            views = _views_input(r)
-            if views is not None:
-                todo.append((r, views))
-        if not todo:
-            return []
-        out = by_mesh(self.step(pa.concat_tables([v for _, v in todo])))
-        for r, _ in todo:
-            r[f"embed_image:{self.role}"] = pack(out[r["mesh_id"]])
-        return [r for r, _ in todo]
+    def _input(self, row: dict) -> pa.Table | None:
+        """The mesh's input rows as this step takes them (``None``: neither made now nor stored)."""
+        made = unpack(row[self.step.input])
+        if made is not None:
+            return schemas.conform(made, self.run.step(self.step.input).stage.target(made))
+        return unpack(row[stored_column(self.step.input)])

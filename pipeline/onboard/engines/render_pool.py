@@ -13,6 +13,7 @@ from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
 from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages import Step
 from pipeline.onboard.stages.base import error_row
 from pipeline.onboard.stages.render import RENDER_OUT
 
@@ -30,12 +31,10 @@ def _cause(exc: BaseException) -> str:
     return traceback.format_exception_only(type(exc), exc)[-1].strip()
 
 
-def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
+def _worker_main(conn, cfg: OnboardConfig, run_id: str, step: Step) -> None:
     try:
-        from pipeline.onboard.stages.render import RenderStage
-
-        stage = RenderStage(cfg, run_id)
-        stage._get_renderer().warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
+        stage = step.stage.runner(cfg, run_id, step)
+        stage.warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
     except Exception as exc:  # tell the parent why, instead of dying with the reason on our stderr only
         conn.send(("setup_error", _cause(exc)))
         return
@@ -51,9 +50,9 @@ def _worker_main(conn, cfg: OnboardConfig, run_id: str) -> None:
 
 
 class _Worker:
-    def __init__(self, ctx, cfg: OnboardConfig, run_id: str):
+    def __init__(self, ctx, cfg: OnboardConfig, run_id: str, step: Step):
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id), daemon=True)
+        self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id, step), daemon=True)
         self.proc.start()
         child.close()
         self.item: dict | None = None
@@ -67,19 +66,18 @@ class _Worker:
 
 
 class RenderPool:
-    """Renders meshes in ``n`` spawned processes; yields ``(item, rows)`` in completion order."""
+    """Renders meshes in ``n`` spawned processes; yields ``(item, rows)`` in completion order.
 
-    def __init__(self, cfg: OnboardConfig, run_id: str, n: int, timeout_s: float):
+    ``step`` is the run's rendering step (by default resolved from ``cfg``)."""
+
+    def __init__(self, cfg: OnboardConfig, run_id: str, n: int, timeout_s: float, step: Step | None = None):
         self.cfg, self.run_id, self.timeout_s = cfg, run_id, timeout_s
+        self.step = step or cfg.resolve().source
         self._ctx = mp.get_context("spawn")
-        self._workers = [_Worker(self._ctx, cfg, run_id) for _ in range(max(1, n))]
+        self._workers = [_Worker(self._ctx, cfg, run_id, self.step) for _ in range(max(1, n))]
 
     def _fail(self, item: dict, reason: str, kind: str) -> list[dict]:
-        base = {
-            "mesh_id": item["mesh_id"],
-            "fingerprint": self.cfg.fingerprints()["render"],
-            "run_id": self.run_id,
-        }
+        base = {"mesh_id": item["mesh_id"], "fingerprint": self.step.fingerprint, "run_id": self.run_id}
         return [error_row(RENDER_OUT, base, reason, kind)]
 
     def map(self, items: Iterable[dict]) -> Iterator[tuple[dict, list[dict]]]:
@@ -139,7 +137,7 @@ class RenderPool:
 
     def _replace(self, i: int) -> None:
         self._workers[i].kill()
-        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id)
+        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id, self.step)
 
     def close(self) -> None:
         for w in self._workers:

@@ -1,21 +1,157 @@
-"""Onboarding stages: callables over Arrow tables, each holding its model for its whole life.
+"""Onboarding stages, and :data:`STAGES`: the one declaration of the stages, their order and inputs.
 
-Every stage maps an input ``pa.Table`` to an output ``pa.Table`` whose rows either conform to a store
-table or carry an ``error`` (one row per failed mesh), so the same code runs in the local executor and
-under Ray Data ``map_batches``. :func:`split_errors` separates the two.
+Each stage (``render``, ``caption``, ``embed``) is a callable object over Arrow tables that holds its
+model for its whole life: it maps an input ``pa.Table`` to an output ``pa.Table`` whose rows either
+conform to a store table or carry an ``error`` (one row per failed mesh), so the same code runs in the
+local engine and under Ray Data ``map_batches`` (:func:`pipeline.onboard.stages.base.split_errors`
+separates the two). The planner, both engines, ``--force`` and the fingerprints iterate :data:`STAGES`
+(through :func:`resolve_steps`); nothing else lists the stages.
+
+This module stays light (the CLI reads :data:`STAGE_NAMES` for ``--help``): the stage classes, pyarrow
+and the models are imported by the functions that build them.
 """
 
-from pipeline.onboard.stages.base import ERROR_FIELDS, split_errors
-from pipeline.onboard.stages.caption import CaptionStage
-from pipeline.onboard.stages.embed import ImageEmbedStage, TextEmbedStage
-from pipeline.onboard.stages.render import RENDER_OUT, RenderStage
+from __future__ import annotations
 
-__all__ = [
-    "ERROR_FIELDS",
-    "RENDER_OUT",
-    "CaptionStage",
-    "ImageEmbedStage",
-    "RenderStage",
-    "TextEmbedStage",
-    "split_errors",
-]
+from typing import TYPE_CHECKING, Any
+
+from pipeline.fingerprint import fingerprint
+from pipeline.onboard.stages.step import Stage, Step
+
+if TYPE_CHECKING:
+    import pyarrow as pa
+
+    from pipeline.models.registry import ModelSpec
+    from pipeline.profiles import Profile
+
+
+# ---------------------------------------------------------------- the stage objects
+def render_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.render import RenderStage
+
+    return RenderStage(cfg, run_id, step, model)
+
+
+def caption_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.caption import CaptionStage
+
+    return CaptionStage(cfg, run_id, step, model)
+
+
+def text_embed_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.embed import TextEmbedStage
+
+    return TextEmbedStage(cfg, run_id, step, model)
+
+
+def image_embed_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.embed import ImageEmbedStage
+
+    return ImageEmbedStage(cfg, run_id, step, model)
+
+
+# ---------------------------------------------------------------- model roles of each stage
+def no_model(profile: Profile) -> tuple[str | None, ...]:
+    return (None,)
+
+
+def captioner(profile: Profile) -> tuple[str | None, ...]:
+    return ("captioner",)
+
+
+def text_encoder(profile: Profile) -> tuple[str | None, ...]:
+    return ("text_encoder",)
+
+
+def image_encoders(profile: Profile) -> tuple[str | None, ...]:
+    """The stage-2 encoder, plus CLIP image where the profile has it."""
+    return ("view_encoder",) + (("clip_image_encoder",) if profile.clip_image_encoder is not None else ())
+
+
+# ---------------------------------------------------------------- fingerprints, chained through inputs
+def render_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
+    return cfg.render.fingerprint()
+
+
+def caption_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
+    return fingerprint({"model": spec.key(), "opts": spec.options, "prompt": cfg.prompt, "in": upstream})
+
+
+def encoder_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
+    return fingerprint({"model": spec.key(), "opts": spec.options, "in": upstream})
+
+
+# ---------------------------------------------------------------- table schemas of the outputs
+def views_schema(out: pa.Table) -> pa.Schema:
+    from pipeline import schemas
+
+    return schemas.VIEWS
+
+
+def captions_schema(out: pa.Table) -> pa.Schema:
+    from pipeline import schemas
+
+    return schemas.CAPTIONS
+
+
+def embeddings_schema(out: pa.Table) -> pa.Schema:
+    """The embedding table of the output's vector width (its schema fixes it; no model needed)."""
+    from pipeline import schemas
+
+    return schemas.embedding_schema(out.schema.field("embedding").type.list_size)
+
+
+#: The stages, in order; each reads its ``input`` stage's output. The first reads the mesh files.
+STAGES: tuple[Stage, ...] = (
+    Stage("render", None, "views", no_model, render_fingerprint, render_runner, views_schema),
+    Stage("caption", "render", "captions", captioner, caption_fingerprint, caption_runner, captions_schema),
+    Stage(
+        "embed_text",
+        "caption",
+        "text_embeddings",
+        text_encoder,
+        encoder_fingerprint,
+        text_embed_runner,
+        embeddings_schema,
+        per_encoder=True,
+    ),
+    Stage(
+        "embed_image",
+        "render",
+        "image_embeddings",
+        image_encoders,
+        encoder_fingerprint,
+        image_embed_runner,
+        embeddings_schema,
+        per_encoder=True,
+        per_role=True,
+    ),
+)
+STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
+
+
+def resolve_steps(cfg: Any, profile: Profile) -> tuple[Step, ...]:
+    """The steps of a run, in stage order: one per stage and model role, fingerprints chained."""
+    from pipeline.store import slug
+
+    steps: list[Step] = []
+    first_of: dict[str, Step] = {}
+    for stage in STAGES:
+        upstream = first_of.get(stage.input) if stage.input else None
+        for role in stage.roles(profile):
+            spec = getattr(profile, role) if role else None
+            step = Step(
+                stage=stage,
+                role=role,
+                spec=spec,
+                key=f"{stage.name}:{role}" if stage.per_role else stage.name,
+                fingerprint=stage.fingerprint(cfg, spec, upstream.fingerprint if upstream else None),
+                input=upstream.key if upstream else None,
+                dataset=f"{stage.table}/{slug(spec.key())}" if stage.per_encoder else stage.table,
+            )
+            steps.append(step)
+            first_of.setdefault(stage.name, step)
+    return tuple(steps)
+
+
+__all__ = ["STAGES", "STAGE_NAMES", "Stage", "Step", "resolve_steps"]

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pyarrow as pa
 
 from pipeline import schemas
 from pipeline.models.registry import create_model
-from pipeline.onboard.config import OnboardConfig
 from pipeline.onboard.stages.base import error_row, with_errors
+from pipeline.onboard.stages.step import Step
+
+if TYPE_CHECKING:
+    from pipeline.onboard.config import OnboardConfig
 
 CAPTION_OUT = with_errors(schemas.CAPTIONS)
 
@@ -15,11 +20,11 @@ CAPTION_OUT = with_errors(schemas.CAPTIONS)
 class CaptionStage:
     """Captions every view with the profile's captioner (built once, lazily)."""
 
-    def __init__(self, cfg: OnboardConfig, run_id: str, model=None):
+    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
         self.cfg = cfg
         self.run_id = run_id
-        self.spec = cfg.get_profile().captioner
-        self.fingerprint = cfg.fingerprints()["caption"]
+        self.spec = step.spec
+        self.fingerprint = step.fingerprint
         self._model = model
 
     @property

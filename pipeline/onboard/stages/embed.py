@@ -2,26 +2,29 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pyarrow as pa
 
 from pipeline import schemas
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import create_model
-from pipeline.onboard.config import OnboardConfig
 from pipeline.onboard.stages.base import error_row, with_errors
+from pipeline.onboard.stages.step import Step
+
+if TYPE_CHECKING:
+    from pipeline.onboard.config import OnboardConfig
 
 
-class _EmbedStage:
+class EmbedStage:
     """Shared body: one encoder (built lazily, once), one fingerprint, rows keyed by the source rows."""
 
-    role: str
-    fingerprint_key: str
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, model=None):
+    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
         self.cfg = cfg
         self.run_id = run_id
-        self.spec = getattr(cfg.get_profile(), self.role)
-        self.fingerprint = cfg.fingerprints()[self.fingerprint_key]
+        self.role = step.role
+        self.spec = step.spec
+        self.fingerprint = step.fingerprint
         self._model = model
 
     @property
@@ -65,23 +68,15 @@ class _EmbedStage:
         return pa.Table.from_pylist(rows, schema=out)
 
 
-class TextEmbedStage(_EmbedStage):
+class TextEmbedStage(EmbedStage):
     """Embeds every caption with the profile's text encoder."""
-
-    role = "text_encoder"
-    fingerprint_key = "embed_text"
 
     def _encode(self, captions: pa.Table):
         return self.model.encode_text([t or "" for t in captions.column("caption").to_pylist()])
 
 
-class ImageEmbedStage(_EmbedStage):
+class ImageEmbedStage(EmbedStage):
     """Embeds every view with one of the profile's image encoders (``view_encoder`` or ``clip_image_encoder``)."""
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, role: str = "view_encoder", model=None):
-        self.role = role
-        self.fingerprint_key = f"embed_image:{role}"
-        super().__init__(cfg, run_id, model)
 
     def _encode(self, views: pa.Table):
         from pipeline.mesh.render import decode_png

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pyarrow as pa
 
 from pipeline import schemas
 from pipeline.mesh.load import load_mesh
-from pipeline.onboard.config import OnboardConfig
 from pipeline.onboard.stages.base import error_row, with_errors
+from pipeline.onboard.stages.step import Step
+
+if TYPE_CHECKING:
+    from pipeline.onboard.config import OnboardConfig
 
 GEOMETRY_FIELDS = [
     pa.field("n_vertices", pa.int64()),
@@ -26,18 +31,24 @@ RENDER_IN = pa.schema(
 class RenderStage:
     """Loads, normalises and renders each mesh of a batch; the GL context lives as long as the object."""
 
-    def __init__(self, cfg: OnboardConfig, run_id: str):
+    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
         self.cfg = cfg
         self.run_id = run_id
-        self.fingerprint = cfg.fingerprints()["render"]
+        self.fingerprint = step.fingerprint
         self._renderer = None
 
-    def _get_renderer(self):
+    @property
+    def renderer(self):
+        """The GL renderer, created on first use (it lives as long as this object)."""
         if self._renderer is None:
             from pipeline.mesh.render import Renderer
 
             self._renderer = Renderer(self.cfg.render)
         return self._renderer
+
+    def warm_up(self) -> None:
+        """Create the GL context and compile the shaders now (render workers do this before timing)."""
+        self.renderer.warm_up()
 
     def __call__(self, batch: pa.Table) -> pa.Table:
         rows: list[dict] = []
@@ -58,8 +69,9 @@ class RenderStage:
                 max_faces=self.cfg.max_faces,
                 up=rc.up,
                 max_texture=rc.max_texture,
+                max_texture_pixels=self.cfg.max_texture_pixels,
             )
-            views = self._get_renderer().render(mesh)
+            views = self.renderer.render(mesh)
         except Exception as exc:  # one bad mesh must never stop the run
             return [error_row(RENDER_OUT, base, exc)]
         geo = {

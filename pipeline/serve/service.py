@@ -1,0 +1,212 @@
+"""The query service's state: the current store snapshot, a bounded worker pool and latency statistics.
+
+* Snapshot: one :class:`~pipeline.query.api.Retriever` on one store state. Requests take a reference to
+  the current snapshot and hold it until they finish. A poller thread compares
+  :func:`~pipeline.query.library.store_version` every ``reload_interval`` seconds; on a change it opens a
+  new Retriever that shares the loaded models, swaps the reference (one assignment: atomic), and closes
+  the old snapshot once its last in-flight request has finished.
+* Work: model and DuckDB work runs in a thread pool of ``workers`` threads; at most ``max_pending``
+  requests may wait or run at once (more get 503), and a request that waits longer than ``timeout``
+  seconds gets 504 (its work still finishes in the pool, bounded by the same limits).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+log = logging.getLogger("pipeline.serve")
+
+
+class Busy(RuntimeError):
+    """Too many requests are waiting (the service answers 503)."""
+
+
+class Snapshot:
+    """A Retriever plus the count of requests using it; closed when retired and idle."""
+
+    def __init__(self, retriever) -> None:
+        self.retriever = retriever
+        self.version = retriever.version
+        self.opened_at = time.time()
+        self._users = 0
+        self._retired = False
+        self._lock = threading.Lock()
+
+    def acquire(self) -> bool:
+        with self._lock:
+            if self._retired:
+                return False
+            self._users += 1
+            return True
+
+    def release(self) -> None:
+        with self._lock:
+            self._users -= 1
+            close = self._retired and self._users == 0
+        if close:
+            self.retriever.close()
+
+    def retire(self) -> None:
+        with self._lock:
+            self._retired = True
+            close = self._users == 0
+        if close:
+            self.retriever.close()
+
+
+@dataclass
+class ServiceLimits:
+    """Request limits of the service (see ``docs/serve.md``, "Safety")."""
+
+    max_body_bytes: int = 20 * 1024 * 1024
+    max_pixels: int = 40_000_000
+    timeout: float = 60.0
+    workers: int = 2
+    max_pending: int = 64
+    max_batch: int = 32
+    reload_interval: float = 1.0
+
+
+class QueryService:
+    """Owns the snapshots, the worker pool, the reload poller and the statistics."""
+
+    def __init__(self, retriever, limits: ServiceLimits | None = None, *, torch_threads: int | None = None):
+        self.limits = limits or ServiceLimits()
+        self.torch_threads = torch_threads
+        self._snapshot = Snapshot(retriever)
+        self._swap_lock = threading.Lock()
+        self.pool = ThreadPoolExecutor(max_workers=self.limits.workers, thread_name_prefix="oscar-query")
+        self._pending = threading.BoundedSemaphore(self.limits.max_pending)
+        self._latencies: deque[float] = deque(maxlen=2000)
+        self._stats_lock = threading.Lock()
+        self.started_at = time.time()
+        self.counts = {"queries": 0, "errors": 0, "rejected_busy": 0, "timeouts": 0, "reloads": 0}
+        self.last_reload_error: str | None = None
+        self._stop = threading.Event()
+        self._poller: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ snapshots
+    @property
+    def snapshot(self) -> Snapshot:
+        return self._snapshot
+
+    def acquire(self) -> Snapshot:
+        """The current snapshot, held until :meth:`Snapshot.release` (retries across a concurrent swap)."""
+        while True:
+            snap = self._snapshot
+            if snap.acquire():
+                return snap
+
+    def reload_if_changed(self) -> bool:
+        """Open the store's latest state if it has new commits; returns whether the snapshot changed."""
+        from pipeline.query.library import store_version
+
+        with self._swap_lock:
+            old = self._snapshot
+            if store_version(old.retriever.store.root) == old.version:
+                return False
+            t0 = time.perf_counter()
+            new = Snapshot(old.retriever.reopened())
+            self._snapshot = new  # requests from now on use the new state
+            old.retire()  # closes when its in-flight requests are done
+            with self._stats_lock:
+                self.counts["reloads"] += 1
+            log.info(
+                "store version %s -> %s: %d meshes (reopened in %.0f ms)",
+                old.version,
+                new.version,
+                new.retriever.n_meshes,
+                (time.perf_counter() - t0) * 1000,
+            )
+            return True
+
+    def start_polling(self) -> None:
+        if self.limits.reload_interval <= 0 or self._poller is not None:
+            return
+        self._poller = threading.Thread(target=self._poll, name="oscar-store-poller", daemon=True)
+        self._poller.start()
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self.limits.reload_interval):
+            try:
+                self.reload_if_changed()
+                self.last_reload_error = None
+            except Exception as exc:  # a half-written or broken commit: keep serving the old state
+                self.last_reload_error = f"{type(exc).__name__}: {exc}"
+                log.warning("store reload failed, still serving version %s: %s", self._snapshot.version, exc)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._poller is not None:
+            self._poller.join(timeout=5)
+        self.pool.shutdown(wait=True, cancel_futures=True)
+        self._snapshot.retire()
+
+    # ------------------------------------------------------------------ work
+    async def run(self, fn: Callable, *args):
+        """Run ``fn(retriever, *args)`` in the pool on a held snapshot; 503 when full, 504 on timeout."""
+        import asyncio
+
+        if not self._pending.acquire(blocking=False):
+            with self._stats_lock:
+                self.counts["rejected_busy"] += 1
+            raise Busy(f"the service is busy ({self.limits.max_pending} requests in flight); retry later")
+        snap = self.acquire()
+
+        def work():
+            try:
+                return fn(snap.retriever, *args)
+            finally:
+                snap.release()
+                self._pending.release()
+
+        future = asyncio.get_running_loop().run_in_executor(self.pool, work)
+        try:
+            return await asyncio.wait_for(asyncio.shield(future), timeout=self.limits.timeout)
+        except asyncio.TimeoutError:
+            with self._stats_lock:
+                self.counts["timeouts"] += 1
+            raise
+
+    def record(self, seconds: float, ok: bool, n: int = 1) -> None:
+        with self._stats_lock:
+            self.counts["queries"] += n
+            if not ok:
+                self.counts["errors"] += n
+            else:
+                self._latencies.append(seconds)
+
+    # ------------------------------------------------------------------ stats
+    def stats(self) -> dict:
+        import numpy as np
+
+        with self._stats_lock:
+            lat = np.asarray(self._latencies, dtype=np.float64) * 1000
+            counts = dict(self.counts)
+        snap = self._snapshot
+        r = snap.retriever
+
+        def pct(q: float):
+            return round(float(np.percentile(lat, q)), 3) if len(lat) else None
+
+        return {
+            "store": str(r.store.root),
+            "store_version": snap.version,
+            "snapshot_opened_at": snap.opened_at,
+            "profile": r.profile.name,
+            "meshes": r.n_meshes,
+            "captions": r.text_filter.n_rows,
+            "views": int(r.tables.views.num_rows),
+            **counts,
+            "latency_ms": {"p50": pct(50), "p99": pct(99), "window": int(len(lat))},
+            "uptime_s": round(time.time() - self.started_at, 3),
+            "workers": self.limits.workers,
+            "torch_threads": self.torch_threads,
+            "last_reload_error": self.last_reload_error,
+        }
