@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Reproduce every number in docs/results.md (offline profile, CPU only; about 25 min on 2 idle cores).
+# Reproduce every number in docs/results.md (offline profile, CPU only; about 25 min on 2 idle cores,
+# hours on a machine shared with other jobs: docs/results.md says which steps its numbers come from).
 #   bash bench/eval_results.sh [WORK_DIR]     (default WORK_DIR: /tmp/oscar_eval_results)
 # Reports land in WORK_DIR/report_*/ (report.html, report.md, metrics.json, plots/, gallery/); each report
 # names its metric set (`paper`: the reference scripts' definitions, the default; `standard`: textbook).
@@ -34,6 +35,14 @@ step report_ycb_fallback_meshes
 python -m pipeline.evaluate --store "$W/ycb_store" --queries "$W/ycb_synth/queries.jsonl" \
   --out "$W/report_ycb_fallback_meshes" --fallback-unit meshes --taus 0.50:0.95:0.05 --top-ks 5,10,15 \
   --modes two-stage --rois segm --no-progress
+
+# 3d. one query per mesh (every 5th line: each mesh's first query), base setting, in both metric sets
+step report_ycb78
+awk 'NR % 5 == 1' "$W/ycb_synth/queries.jsonl" > "$W/ycb_synth/queries_1per_mesh.jsonl"
+for m in paper standard; do
+  python -m pipeline.evaluate --store "$W/ycb_store" --queries "$W/ycb_synth/queries_1per_mesh.jsonl" \
+    --out "$W/report_ycb78_$m" --metrics "$m" --no-sweeps --no-progress
+done
 
 # 4. prompt styles: one store per style, each started as a copy of the attributes store (renders reused),
 #    on a second, smaller synthetic set (1 view per mesh, seed 1); the offline captioner ignores the prompt

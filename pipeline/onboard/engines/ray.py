@@ -155,7 +155,8 @@ class RayEngine(Engine):
         for m, run, path in zip(*(t.column(c).to_pylist() for c in t.column_names), strict=True):
             if m not in best or run > best[m][0]:
                 best[m] = (run, path)
-        return {m: str(Path(p).resolve()) for m, (_, p) in best.items()}
+        base = self.store.path_of(dataset)  # a Delta dataset names its files relative to the table
+        return {m: str((base / p).resolve()) for m, (_, p) in best.items()}
 
     # ------------------------------------------------------------------ the dataset
     def _run_dataset(self, plan: Plan, items: list[dict], bars, summary: RunSummary) -> None:
