@@ -37,7 +37,15 @@ def store_rows(path) -> dict[str, list[dict]]:
     """Latest rows of every dataset (all errors rows), run-dependent columns dropped, in a stable order."""
     s = Store.open(path)
     out = {}
-    for table in ("meshes", "views", "captions", "errors", "text_embeddings", "image_embeddings"):
+    for table in (
+        "meshes",
+        "views",
+        "captions",
+        "errors",
+        "text_embeddings",
+        "image_embeddings",
+        "view_features",
+    ):
         for d in s.datasets(table):
             t = s.read_latest(d) if table != "errors" else s.read(d)
             t = t.drop_columns([c for c in t.column_names if c in VOLATILE])
