@@ -31,6 +31,24 @@ def add_model_args(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_read_model_args(group) -> None:
+    """``--profile auto|offline|paper`` (auto: the store's own) and ``--model`` for readers (query, serve)."""
+    group.add_argument(
+        "--profile",
+        default="auto",
+        choices=["auto", "offline", "paper"],
+        help="model profile (default auto: the profile the store was onboarded with)",
+    )
+    group.add_argument(
+        "--model",
+        action="append",
+        default=[],
+        metavar="ROLE=ID_OR_DIR",
+        help="override a role's model; roles: captioner, text_encoder, view_encoder, clip_image_encoder, "
+        "detector, segmenter",
+    )
+
+
 def model_overrides(args: argparse.Namespace) -> dict[str, str]:
     from pipeline.profiles import parse_overrides
 

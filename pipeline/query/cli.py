@@ -5,10 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.cli_common import OneLineParser, fail, float_range, int_range, positive_int
+from pipeline.cli_common import OneLineParser, add_read_model_args, fail, float_range, int_range, positive_int
 from pipeline.threads import add_torch_threads_arg
-
-ROLES = "captioner, text_encoder, view_encoder, clip_image_encoder, detector, segmenter"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -32,19 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument("--output", metavar="OUT.jsonl", help="batch output (default: stdout)")
 
     how = p.add_argument_group("how to rank")
-    how.add_argument(
-        "--profile",
-        default="auto",
-        choices=["auto", "offline", "paper"],
-        help="model profile (default auto: the profile the store was onboarded with)",
-    )
-    how.add_argument(
-        "--model",
-        action="append",
-        default=[],
-        metavar="ROLE=ID_OR_DIR",
-        help=f"override a role's model; roles: {ROLES}",
-    )
+    add_read_model_args(how)
     how.add_argument(
         "--roi",
         default="segm",

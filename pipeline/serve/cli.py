@@ -12,7 +12,15 @@ import ipaddress
 import os
 import sys
 
-from pipeline.cli_common import OneLineParser, fail, float_range, int_range, positive_float, positive_int
+from pipeline.cli_common import (
+    OneLineParser,
+    add_read_model_args,
+    fail,
+    float_range,
+    int_range,
+    positive_float,
+    positive_int,
+)
 from pipeline.threads import add_torch_threads_arg
 
 TOKEN_ENV = "OSCAR_TOKEN"
@@ -37,15 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"require 'Authorization: Bearer TOKEN' (default: ${TOKEN_ENV}); required for a non-loopback --host",
     )
     models = p.add_argument_group("models")
-    models.add_argument(
-        "--profile",
-        default="auto",
-        choices=["auto", "offline", "paper"],
-        help="model profile (default auto: the profile the store was onboarded with)",
-    )
-    models.add_argument(
-        "--model", action="append", default=[], metavar="ROLE=ID_OR_DIR", help="override a role"
-    )
+    add_read_model_args(models)
     models.add_argument("--device", default=None, help="torch device (default: cuda if available)")
     add_torch_threads_arg(models, "half the cores, 1 to 4")
     models.add_argument("--threads", type=positive_int, default=None, help="DuckDB threads per stage-1 query")
