@@ -1,12 +1,39 @@
-"""Shared helpers of the stages: the error columns and splitting failed rows from good ones."""
+"""Shared helpers of the stages: the model-holding base, the error columns and splitting failed rows."""
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline import schemas
 from pipeline.store import utcnow
+
+if TYPE_CHECKING:
+    from pipeline.onboard.config import OnboardConfig
+    from pipeline.onboard.stages.step import Step
+
+
+class ModelStage:
+    """A stage that holds one model role's adapter (built lazily, once) under one step's fingerprint."""
+
+    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
+        self.cfg = cfg
+        self.run_id = run_id
+        self.role = step.role
+        self.spec = step.spec
+        self.fingerprint = step.fingerprint
+        self._model = model
+
+    @property
+    def model(self):
+        if self._model is None:
+            from pipeline.models.registry import create_model
+
+            self._model = create_model(self.role, self.spec, **self.cfg.model_options.get(self.role, {}))
+        return self._model
+
 
 ERROR_FIELDS = [pa.field("error", pa.string()), pa.field("error_type", pa.string())]
 

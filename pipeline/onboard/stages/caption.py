@@ -2,36 +2,16 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import pyarrow as pa
 
 from pipeline import schemas
-from pipeline.models.registry import create_model
-from pipeline.onboard.stages.base import error_row, with_errors
-from pipeline.onboard.stages.step import Step
-
-if TYPE_CHECKING:
-    from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import ModelStage, error_row, with_errors
 
 CAPTION_OUT = with_errors(schemas.CAPTIONS)
 
 
-class CaptionStage:
+class CaptionStage(ModelStage):
     """Captions every view with the profile's captioner (built once, lazily)."""
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
-        self.cfg = cfg
-        self.run_id = run_id
-        self.spec = step.spec
-        self.fingerprint = step.fingerprint
-        self._model = model
-
-    @property
-    def model(self):
-        if self._model is None:
-            self._model = create_model("captioner", self.spec, **self.cfg.model_options.get("captioner", {}))
-        return self._model
 
     def __call__(self, views: pa.Table) -> pa.Table:
         from pipeline.mesh.render import decode_png

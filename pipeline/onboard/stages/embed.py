@@ -2,36 +2,15 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import pyarrow as pa
 
 from pipeline import schemas
 from pipeline.models.protocols import l2_normalise
-from pipeline.models.registry import create_model
-from pipeline.onboard.stages.base import error_row, with_errors
-from pipeline.onboard.stages.step import Step
-
-if TYPE_CHECKING:
-    from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.base import ModelStage, error_row, with_errors
 
 
-class EmbedStage:
+class EmbedStage(ModelStage):
     """Shared body: one encoder (built lazily, once), one fingerprint, rows keyed by the source rows."""
-
-    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
-        self.cfg = cfg
-        self.run_id = run_id
-        self.role = step.role
-        self.spec = step.spec
-        self.fingerprint = step.fingerprint
-        self._model = model
-
-    @property
-    def model(self):
-        if self._model is None:
-            self._model = create_model(self.role, self.spec, **self.cfg.model_options.get(self.role, {}))
-        return self._model
 
     @property
     def encoder_id(self) -> str:
