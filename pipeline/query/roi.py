@@ -47,6 +47,18 @@ class Roi:
         }
 
 
+def largest_blob(fg: np.ndarray) -> np.ndarray | None:
+    """The largest connected part of a foreground mask after a small opening, holes filled (None if empty)."""
+    from scipy import ndimage
+
+    fg = ndimage.binary_opening(fg, iterations=1)
+    labels, n = ndimage.label(fg)
+    if n == 0:
+        return None
+    sizes = ndimage.sum(fg, labels, index=np.arange(1, n + 1))
+    return ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
+
+
 def mask_box(mask: np.ndarray) -> IntBox | None:
     """Tight integer box (x0, y0, x1 exclusive, y1 exclusive) of a boolean mask."""
     ys = np.flatnonzero(mask.any(axis=1))
@@ -69,7 +81,6 @@ def border_segment(image: Image.Image, box: IntBox, min_share: float = 0.02, max
     Used by profiles without a segmenter (offline). Works when the box has a margin of fairly uniform
     background (renders, table tops, studio shots); returns ``None`` when the result is implausible.
     """
-    from scipy import ndimage
 
     x0, y0, x1, y1 = box
     crop = np.asarray(image, dtype=np.float32)[y0:y1, x0:x1]
@@ -89,12 +100,9 @@ def border_segment(image: Image.Image, box: IntBox, min_share: float = 0.02, max
     spread = np.median(np.linalg.norm(border - bg, axis=1))
     dist = np.linalg.norm(crop - bg, axis=2)
     fg = dist > max(24.0, 3.0 * spread)
-    fg = ndimage.binary_opening(fg, iterations=1)
-    labels, n = ndimage.label(fg)
-    if n == 0:
+    fg = largest_blob(fg)
+    if fg is None:
         return None
-    sizes = ndimage.sum(fg, labels, index=np.arange(1, n + 1))
-    fg = ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
     share = float(fg.mean())
     if not min_share <= share <= max_share:
         return None
@@ -121,7 +129,6 @@ def grabcut_segment(
     implausible (too small or the whole box), so the caller can fall back.
     """
     import cv2
-    from scipy import ndimage
 
     W, H = image.size
     x0, y0, x1, y1 = box
@@ -148,12 +155,9 @@ def grabcut_segment(
     except cv2.error:
         return None
     fg = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
-    fg = ndimage.binary_opening(fg, iterations=1)
-    labels, n = ndimage.label(fg)
-    if n == 0:
+    fg = largest_blob(fg)
+    if fg is None:
         return None
-    sizes = ndimage.sum(fg, labels, index=np.arange(1, n + 1))
-    fg = ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
     big = (
         np.asarray(Image.fromarray(fg.astype(np.uint8) * 255).resize((cx1 - cx0, cy1 - cy0), Image.BILINEAR))
         >= 128
