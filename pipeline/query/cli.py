@@ -174,29 +174,36 @@ def main(argv: list[str] | None = None) -> int:
         return fail("interrupted", 130)
 
 
-def _run(args: argparse.Namespace) -> int:
-    import json
-
+def open_retriever(args: argparse.Namespace, **extra):
+    """A :class:`Retriever` over ``args.store`` from the readers' shared options (profile, models, device,
+    cache, DuckDB threads); models load when first needed. Used by query and serve."""
     from pipeline.profiles import parse_overrides
     from pipeline.query.api import Retriever
-    from pipeline.query.errors import QueryError
 
     quiet_model_loading()
-    settings_changes = {
-        "prompt_weight": args.prompt_weight,
-        "verify": args.verify,
-        "verify_top": args.verify_top,
-    }
-    retriever = Retriever.open(
+    return Retriever.open(
         args.store,
         profile=args.profile,
         model_overrides=parse_overrides(args.model),
         device=args.device,
         use_cache=not args.no_cache,
         threads=args.threads,
-        settings_changes=settings_changes,
         preload=False,
+        **extra,
     )
+
+
+def _run(args: argparse.Namespace) -> int:
+    import json
+
+    from pipeline.query.errors import QueryError
+
+    settings_changes = {
+        "prompt_weight": args.prompt_weight,
+        "verify": args.verify,
+        "verify_top": args.verify_top,
+    }
+    retriever = open_retriever(args, settings_changes=settings_changes)
     rank_args = {
         "roi_mode": args.roi,
         "mode": args.mode,

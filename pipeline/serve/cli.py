@@ -100,35 +100,18 @@ def check_args(args: argparse.Namespace) -> str | None:
             f"--host {args.host} exposes the service beyond this machine: set a bearer token with --token or "
             f"${TOKEN_ENV} (or bind 127.0.0.1)"
         )
-    if not 0 <= args.port <= 65535:
-        return f"--port must be within 0..65535, got {args.port}"
-    if args.max_body_mb <= 0 or args.timeout <= 0:
-        return "--max-body-mb and --timeout must be positive"
-    if args.reload_interval < 0:
-        return "--reload-interval must be >= 0"
-    return None
+    return None  # ports, limits and intervals are checked by their argparse types
 
 
 def build_service(args: argparse.Namespace):
     """Open the store and load the models once; returns the :class:`QueryService`."""
-    from pipeline.profiles import parse_overrides
-    from pipeline.query.api import Retriever
-    from pipeline.query.cli import quiet_model_loading
+    from pipeline.query.cli import open_retriever
     from pipeline.serve.service import QueryService, ServiceLimits
     from pipeline.threads import apply_torch_threads, cpu_count
 
-    quiet_model_loading()
     threads = apply_torch_threads(args.torch_threads)
     workers = args.workers or max(1, min(4, cpu_count() // threads))
-    retriever = Retriever.open(
-        args.store,
-        profile=args.profile,
-        model_overrides=parse_overrides(args.model),
-        device=args.device,
-        use_cache=not args.no_cache,
-        threads=args.threads,
-        preload=False,
-    )
+    retriever = open_retriever(args)
     source = "detector" if retriever.profile.detector is not None else "box"
     retriever.load_models(retriever.required_roles(source))
     limits = ServiceLimits(
