@@ -48,7 +48,7 @@ def test_labelled_photo_masks_are_small_binary_and_inside_their_boxes(monkeypatc
     need_shared(SHARED_DATA / "photos")
     monkeypatch.setenv("OSCAR_SHARED_DATA", str(SHARED_DATA))
     queries = load_queries(PHOTOS)
-    assert len(queries) == 22 and all(q.mask and q.box for q in queries)
+    assert len(queries) == 21 and all(q.mask and q.box for q in queries)
     for q in queries:
         with Image.open(q.mask) as im:
             assert im.mode == "1" and im.size == (640, 480)
