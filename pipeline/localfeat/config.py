@@ -51,7 +51,7 @@ class VerifyConfig:
     top: int = 20  # candidates (by global score) that are verified
     ratio: float = 0.8  # Lowe's ratio test
     min_matches: int = 8  # fewer ratio-test matches: the view scores 0 inliers (RANSAC is skipped)
-    method: str = "homography"  # "homography" | "affine" | "fundamental"
+    method: str = "homography"  # "homography" (OpenCV USAC_FAST) | "affine" | "fundamental" (RANSAC)
     reproj_px: float = 0.02  # RANSAC threshold, as a fraction of the work side
     min_spread: float = 0.04  # inliers must spread at least this fraction of the work side (per axis std)
     roi_keypoints: int = 384  # keypoints detected on the ROI
