@@ -189,6 +189,27 @@ def reload_latency(url: str, store: Path, new_mesh: Path, data: bytes, timeout: 
     }
 
 
+def memory_growth(url: str, pid: int, data: bytes, total: int, readings: int = 10) -> None:
+    """RSS of the server before and after each tenth of ``total`` requests (4 clients). Growth is judged on
+    the second half (caches and allocator pools fill during the first): a leak keeps climbing there."""
+    rss = [rss_mb(pid)]
+    errors, wall, done = 0, 0.0, 0
+    for i in range(readings):
+        n = total * (i + 1) // readings - done
+        load = Load(url, 4, data)
+        wall += load.run(max_requests=n)
+        done += n
+        errors += len(load.errors)
+        rss.append(rss_mb(pid))
+        print(f"memory: {done:6d} requests, RSS {rss[-1]:.1f} MiB", flush=True)
+    half = rss[len(rss) // 2]
+    print(
+        f"memory: RSS {rss[0]:.1f} MiB -> {rss[-1]:.1f} MiB after {total} requests ({rss[-1] - rss[0]:+.1f} MiB; "
+        f"second half {rss[-1] - half:+.1f} MiB; {errors} errors; {wall:.0f} s)",
+        flush=True,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--store", required=True, help="an onboarded store (copied; the copy is served)")
@@ -243,15 +264,7 @@ def main(argv: list[str] | None = None) -> int:
             for e in sorted(set(load.errors))[:3]:
                 print(f"        error: {e}")
         if args.memory_requests > 0:
-            before = rss_mb(server.pid)
-            load = Load(url, 4, data)
-            wall = load.run(max_requests=args.memory_requests)
-            after = rss_mb(server.pid)
-            print(
-                f"memory: RSS {before:.1f} MiB -> {after:.1f} MiB after {args.memory_requests} requests "
-                f"({after - before:+.1f} MiB; {len(load.errors)} errors; {wall:.0f} s)",
-                flush=True,
-            )
+            memory_growth(url, server.pid, data, args.memory_requests)
         if args.new_mesh:
             res = reload_latency(url, store, args.new_mesh.resolve(), data)
             lat = res["commit_to_answer_s"]
