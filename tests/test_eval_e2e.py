@@ -110,3 +110,13 @@ def test_missing_store_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("error: ") and err.count("\n") == 1
     assert main(["--store", str(tmp_path), "--out", str(tmp_path / "r")]) == 2  # no query source
+
+
+def test_synth_avoids_the_views_its_store_was_rendered_with(tiny_store):
+    from pipeline.evaluate.synth_cli import store_render_config
+    from pipeline.mesh.settings import RenderConfig
+
+    _, store = tiny_store
+    cfg = store_render_config(str(store))
+    assert cfg == OnboardConfig(workers=0).render  # the rings, resolution, ... the store recorded
+    assert cfg.elevations_deg == (-15.0, 15.0, 45.0) and cfg != RenderConfig()

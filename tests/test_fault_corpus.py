@@ -22,7 +22,9 @@ def fault_base(tmp_path_factory, offline_models):
     root = tmp_path_factory.mktemp("fault_base")
     lib = write_library(root / "lib")
     store = root / "store"
-    cfg = OnboardConfig(workers=0, render=RenderConfig(resolution=RESOLUTION))
+    # the CLI's render settings (the profile's elevation rings) at the corpus's tiny resolution
+    rings = OnboardConfig().render.elevations_deg
+    cfg = OnboardConfig(workers=0, render=RenderConfig(resolution=RESOLUTION, elevations_deg=rings))
     summary = executor.run_onboarding(str(lib), str(store), cfg, progress=False, models=offline_models)
     assert summary.status == "ok" and summary.failed == 0
     return lib, store

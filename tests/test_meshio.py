@@ -81,6 +81,24 @@ def test_nan_and_degenerate_rejected(tmp_path):
         load_mesh(str(tmp_path / "n.obj"), "obj", max_faces=10)
 
 
+def test_elevation_rings_per_profile_and_validated():
+    from pipeline.onboard.config import OnboardConfig
+
+    assert OnboardConfig(profile="paper").render.elevations_deg == (-15.0, 15.0)  # the paper's K = 8
+    offline = OnboardConfig().render  # the default profile adds a +45 deg ring
+    assert offline.elevations_deg == (-15.0, 15.0, 45.0)
+    views = view_directions(offline)
+    assert [round(e) for _, e, _ in views] == [-15] * 4 + [15] * 4 + [45] * 4
+    assert [round(a) for a, _, _ in views[8:]] == [90, 180, 270, 0]  # ring 2: offset 2 x 45 deg
+    assert offline.fingerprint() != RenderConfig().fingerprint()
+    explicit = OnboardConfig(render=RenderConfig(resolution=64))  # an explicit RenderConfig is kept as is
+    assert explicit.render.elevations_deg == (-15.0, 15.0)
+    assert RenderConfig(elevations_deg=[10, 20]).elevations_deg == (10.0, 20.0)  # JSON lists become tuples
+    for bad, msg in [((), "1 to 6"), ((0,) * 7, "1 to 6"), ((-15, 90), "-89..89"), ((float("nan"),), "-89")]:
+        with pytest.raises(ValueError, match=msg):
+            RenderConfig(elevations_deg=bad)
+
+
 def test_views_layouts_and_framing():
     oscar = view_directions(RenderConfig())
     assert [round(e) for _, e, _ in oscar] == [-15] * 4 + [15] * 4

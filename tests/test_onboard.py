@@ -9,7 +9,7 @@ import numpy as np
 import pyarrow.compute as pc
 import pytest
 from conftest import copy_ycb
-from onboard_helpers import content, onboard
+from onboard_helpers import V, content, onboard
 
 from pipeline import schemas
 from pipeline.mesh.render import decode_png
@@ -38,12 +38,12 @@ def test_tables_schemas_and_counts(built):
     assert set(meshes.column("units_guess").to_pylist()) == {"m"}
     assert all(n == 16384 for n in meshes.column("n_faces").to_pylist())
     views = s.read("views")
-    assert views.schema.equals(schemas.VIEWS) and views.num_rows == 24
-    assert s.read("captions").num_rows == 24
+    assert views.schema.equals(schemas.VIEWS) and views.num_rows == 3 * V
+    assert s.read("captions").num_rows == 3 * V
     for table in ("text_embeddings", "image_embeddings"):
         (dataset,) = s.datasets(table)
         emb = s.read(dataset)
-        assert emb.num_rows == 24
+        assert emb.num_rows == 3 * V
         dim = emb.column("dim")[0].as_py()
         assert emb.schema.equals(schemas.embedding_schema(dim))
         vecs = np.stack(emb.column("embedding").to_numpy(zero_copy_only=False))
@@ -56,7 +56,7 @@ def test_view_features_stage(built):
     _, store, _ = built
     s = Store.open(store)
     feats = s.read("view_features")
-    assert feats.schema.equals(schemas.VIEW_FEATURES) and feats.num_rows == 24
+    assert feats.schema.equals(schemas.VIEW_FEATURES) and feats.num_rows == 3 * V
     fp = json.loads(s.read("runs").column("config_json")[0].as_py())["fingerprints"]["features"]
     assert set(feats.column("fingerprint").to_pylist()) == {fp}
     n = feats.column("n_keypoints").to_numpy()
@@ -76,21 +76,21 @@ def test_feature_config_change_recomputes_only_features(tmp_path, offline_models
     assert summary.rendered == 0 and summary.captioned == 0 and summary.skipped == 0
     assert content(store, lambda d: d.split("/")[0] not in ("runs", "view_features")) == before
     s = Store.open(store)
-    assert s.read("view_features").num_rows == 16
+    assert s.read("view_features").num_rows == 2 * V
     runs = s.read("runs").sort_by("run_id").column("config_json").to_pylist()
     fp64 = json.loads(runs[-1])["fingerprints"]["features"]
     new = s.read("view_features", filter=pc.field("fingerprint") == fp64)
-    assert new.num_rows == 8 and max(new.column("n_keypoints").to_pylist()) <= 64
+    assert new.num_rows == V and max(new.column("n_keypoints").to_pylist()) <= 64
     # detector "none": no features stage at all
     summary = onboard(lib, store, offline_models, features=FeatureConfig(detector="none"))
-    assert summary.skipped == 1 and Store.open(store).read("view_features").num_rows == 16
+    assert summary.skipped == 1 and Store.open(store).read("view_features").num_rows == 2 * V
 
 
 def test_views_layout_and_object_centred(built):
     _, store, _ = built
     views = Store.open(store).read("views")
     elev = sorted(set(views.column("elevation_deg").to_pylist()))
-    assert elev == [-15.0, 15.0]
+    assert elev == [-15.0, 15.0, 45.0]  # the offline profile's rings
     for row in views.to_pylist():
         img = np.asarray(decode_png(row["image"])).astype(int)
         assert img.shape == (512, 512, 3)
@@ -182,18 +182,18 @@ def test_force_and_config_change_redo_only_their_stages(tmp_path, offline_models
     assert s.read("views").num_rows == views_before
     assert sorted(set(s.read("captions").column("prompt_style").to_pylist())) == ["attributes", "comma"]
     (text_ds,) = s.datasets("text_embeddings")
-    assert s.read(text_ds).num_rows == 16
+    assert s.read(text_ds).num_rows == 2 * V
 
     # --force caption redoes captions (superseding rows with the same key), not rendering
     summary = onboard(lib, store, offline_models, prompt_style="comma", force=("caption",))
     assert summary.rendered == 0 and summary.captioned == 1
     s = Store.open(store)
-    assert s.read("captions").num_rows == 24
-    assert s.read_latest("captions").num_rows == 16
+    assert s.read("captions").num_rows == 3 * V
+    assert s.read_latest("captions").num_rows == 2 * V
 
     summary = onboard(lib, store, offline_models, prompt_style="comma", force=("render",))
     assert summary.rendered == 1
-    assert Store.open(store).read_latest("views").num_rows == 8
+    assert Store.open(store).read_latest("views").num_rows == V
 
 
 def test_cap3d_camera_layout(tmp_path, offline_models):

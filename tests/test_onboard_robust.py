@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import REPO, SAMPLE_LIBRARY
-from onboard_helpers import content, onboard
+from onboard_helpers import V, content, onboard
 
 from pipeline.store import Store
 
@@ -68,7 +68,7 @@ def test_bad_meshes_become_error_rows(tmp_path, offline_models):
         assert fragment in reason and "\n" not in reason, (path, reason)
     active = [r for r in s.read("meshes").to_pylist() if r["status"] == "active"]
     assert [r["source_path"] for r in active] == ["good/model.obj"]
-    assert s.read("views").num_rows == 8
+    assert s.read("views").num_rows == V
 
     # a re-run neither retries the known failures nor duplicates their rows
     n_err = s.read("errors").num_rows

@@ -7,7 +7,7 @@ import shutil
 
 import pytest
 from conftest import SAMPLE_LIBRARY
-from onboard_helpers import onboard
+from onboard_helpers import V, onboard
 
 from pipeline.fsck import main as fsck_main
 from pipeline.sql.cli import main as sql_main
@@ -40,7 +40,7 @@ def test_each_table_opens_with_deltalake_and_polars(built):
 
     _, store = built
     s = Store.open(store)
-    expected = {"meshes": 3, "views": 16, "captions": 16, "errors": 1, "runs": 2}
+    expected = {"meshes": 3, "views": 2 * V, "captions": 2 * V, "errors": 1, "runs": 2}
     for table, n in expected.items():
         assert DeltaTable(str(store / table)).to_pyarrow_table().num_rows == n, table
         assert pl.scan_delta(str(store / table)).select(pl.len()).collect().item() == n, table
@@ -48,7 +48,7 @@ def test_each_table_opens_with_deltalake_and_polars(built):
     for table in ("text_embeddings", "image_embeddings"):
         (dataset,) = s.datasets(table)
         df = pl.scan_delta(str(store / dataset)).collect()
-        assert df.height == 16 and set(df["view_index"]) == set(range(8))
+        assert df.height == 2 * V and set(df["view_index"]) == set(range(V))
         assert df["embedding"].list.len().unique().to_list() == [
             s.read(dataset).column("embedding").type.list_size
         ]

@@ -26,6 +26,7 @@ from pipeline.evaluate.degrade import DegradeConfig
 from pipeline.evaluate.library import DEFAULT_CLASS_PATTERN, MeshRef, class_of
 from pipeline.evaluate.prompts import DEFAULT_PROMPT_TEMPLATE, prompt_for
 from pipeline.mesh.settings import RenderConfig
+from pipeline.profiles import default_elevations
 
 
 @dataclass(frozen=True)
@@ -51,7 +52,11 @@ class SynthConfig:
     prompt_template: str = DEFAULT_PROMPT_TEMPLATE
     names: dict[str, str] = field(default_factory=dict)  # mesh name -> readable name for the prompt
     class_pattern: str | None = DEFAULT_CLASS_PATTERN
-    onboarding: RenderConfig = field(default_factory=RenderConfig)  # its views are avoided
+    # its views are avoided; --store uses the store's own; default: the offline profile's rings (a superset
+    # of the paper's)
+    onboarding: RenderConfig = field(
+        default_factory=lambda: RenderConfig(elevations_deg=default_elevations("offline"))
+    )
     max_faces: int = 2_000_000
     max_texture: int = 1024
     degrade: DegradeConfig | None = None  # the harder set (``--hard``): camera effects, occluders, loose ROIs

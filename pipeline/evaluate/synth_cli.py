@@ -60,8 +60,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def store_render_config(store_path: str):
+    """The render config of ``store_path``'s latest onboarding run (``None`` if it recorded none)."""
+    from pipeline.query.library import latest_onboarding
+    from pipeline.store import Store
+
+    with Store.open(store_path) as store:
+        return latest_onboarding(store).render_config()
+
+
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
+    from dataclasses import replace
     from pathlib import Path
 
     from pipeline.evaluate.degrade import DegradeConfig
@@ -84,8 +94,10 @@ def main(argv: list[str]) -> int:
             class_pattern=args.class_pattern or None,
             degrade=DegradeConfig() if args.hard else None,
         )
+        if args.store:  # avoid the views this store was rendered with
+            cfg = replace(cfg, onboarding=store_render_config(args.store) or cfg.onboarding)
         meshes = read_store_meshes(args.store) if args.store else read_folder_meshes(args.library)
-    except (ValueError, OSError, StoreError) as exc:
+    except (ValueError, OSError, StoreError) as exc:  # QueryError is a ValueError
         return fail(str(exc))
     if args.limit:
         meshes = meshes[: args.limit]

@@ -14,6 +14,7 @@ from pipeline.cli_common import (
     int_range,
     model_overrides,
     non_negative_int,
+    number_list,
     positive_float,
     positive_int,
 )
@@ -59,10 +60,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="view size in pixels, 16..8192 (default: 512)",
     )
     p.add_argument(
+        "--elevations",
+        type=number_list(float, -89.0, 89.0, max_items=6),
+        metavar="DEG,DEG,...",
+        help="elevation rings of the oscar layout, 4 views each, -89..89 (default: the profile's: paper -15,15 "
+        "as in the paper; offline -15,15,45, a third ring for top-down tabletop photos); a list that starts "
+        "with '-' needs '=': --elevations=-15,15,45",
+    )
+    p.add_argument(
         "--upper-ring-offset",
         type=float_range(-360.0, 360.0),
         default=45.0,
-        help="azimuth offset in degrees of the +15 deg ring (default: 45; 0 aligns both rings)",
+        help="azimuth offset in degrees of each ring from the one below (default: 45; 0 aligns the rings)",
     )
     p.add_argument(
         "--up", default="auto", choices=["auto", "z", "y"], help="up axis of the meshes (auto: z, y for glTF)"
@@ -149,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.mesh.settings import RenderConfig
     from pipeline.onboard.config import OnboardConfig
     from pipeline.onboard.engines.ray_options import RayOptions
+    from pipeline.profiles import default_elevations
 
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
@@ -165,6 +175,7 @@ def main(argv: list[str] | None = None) -> int:
                 cameras=args.cameras,
                 resolution=args.resolution,
                 upper_ring_offset_deg=args.upper_ring_offset,
+                elevations_deg=args.elevations or default_elevations(args.profile),
                 up=args.up,
                 extra_bg_view=args.extra_bg_view,
             ),

@@ -9,7 +9,7 @@ from pipeline.localfeat.config import FeatureConfig
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.stages import STAGE_NAMES, Step, resolve_steps
-from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, get_profile
+from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, default_elevations, get_profile
 
 #: Textures with more pixels than this fail their mesh (decompression-bomb guard); ``--max-texture-pixels``.
 DEFAULT_MAX_TEXTURE_PIXELS = 8192 * 8192
@@ -22,7 +22,7 @@ class OnboardConfig:
     profile: str = "offline"
     model_overrides: dict[str, str] = field(default_factory=dict)
     prompt_style: str = DEFAULT_PROMPT_STYLE
-    render: RenderConfig = field(default_factory=RenderConfig)
+    render: RenderConfig | None = None  # None: RenderConfig() with the profile's elevation rings
     max_faces: int = 2_000_000
     max_texture_pixels: int = DEFAULT_MAX_TEXTURE_PIXELS  # not fingerprinted: a guard, not a look
     render_timeout_s: float = 120.0
@@ -36,6 +36,8 @@ class OnboardConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)  # local features per view (verification)
 
     def __post_init__(self) -> None:
+        if self.render is None:
+            object.__setattr__(self, "render", RenderConfig(elevations_deg=default_elevations(self.profile)))
         if self.prompt_style not in PROMPT_STYLES:
             raise ValueError(
                 f"unknown --prompt-style {self.prompt_style!r}; choose from {', '.join(PROMPT_STYLES)}"

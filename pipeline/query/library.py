@@ -35,6 +35,20 @@ class Onboarding:
     models: dict[str, str | None]  # role -> "backend:model_id"
     fingerprints: dict[str, str]  # stage -> fingerprint
     features: dict | None = None  # the local-feature config (pipeline.localfeat.FeatureConfig fields)
+    render: dict | None = None  # the render config (pipeline.mesh.settings.RenderConfig fields)
+
+    def render_config(self):
+        """The run's :class:`~pipeline.mesh.settings.RenderConfig` (``None`` when the run did not record it)."""
+        from dataclasses import fields
+
+        from pipeline.mesh.settings import RenderConfig
+
+        if not self.render:
+            return None
+        known = {f.name for f in fields(RenderConfig)}
+        return RenderConfig(
+            **{k: (tuple(v) if isinstance(v, list) else v) for k, v in self.render.items() if k in known}
+        )
 
 
 def latest_onboarding(store: Store) -> Onboarding:
@@ -54,6 +68,7 @@ def latest_onboarding(store: Store) -> Onboarding:
         cfg["models"],
         cfg["fingerprints"],
         cfg.get("features"),
+        cfg.get("render"),
     )
 
 

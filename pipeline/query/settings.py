@@ -45,7 +45,7 @@ class QuerySettings:
 PROFILE_SETTINGS: dict[str, QuerySettings] = {
     "paper": QuerySettings(threshold=0.37),
     # measured on the 78 YCB meshes (novel-view queries, prompts from the names): docs/query.md
-    "offline": QuerySettings(threshold=0.5, prompt_weight=0.5, verify=True),
+    "offline": QuerySettings(threshold=0.45, prompt_weight=0.5, verify=True),
 }
 
 
