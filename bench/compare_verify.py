@@ -1,11 +1,13 @@
 """Top-1 / top-5 of the offline query path with and without local-feature verification, on one query set.
 
-    python bench/compare_verify.py --store STORE --queries QUERIES.jsonl [--boxes-only] [--every N]
+    python bench/compare_verify.py --store STORE --queries QUERIES.jsonl [--boxes-only] [--every N] \
+        [--taus 0.4,0.5]
 
 Each query's ROI and embedding (with its ROI keypoints) are computed once; then it is ranked in two-stage
 and image-only mode, unverified and verified (the default ``VerifyConfig``), so the four settings see the
-same ROIs. ``--every N`` keeps every N-th query (e.g. one per mesh of a 5-per-mesh synthetic set). Instance
-level: a query is a hit when one of its expected models is at rank 1 (top-5: within the first 5).
+same ROIs; ``--taus`` adds two-stage + verify at other stage-1 thresholds. ``--every N`` keeps every N-th
+query (e.g. one per mesh of a 5-per-mesh synthetic set). Instance level: a query is a hit when one of its
+expected models is at rank 1 (top-5: within the first 5).
 """
 
 from __future__ import annotations
@@ -28,6 +30,9 @@ def main() -> int:
     p.add_argument("--every", type=int, default=1, help="keep every N-th query (default: all)")
     p.add_argument("--roi-keypoints", type=int, help="VerifyConfig.roi_keypoints (default: 384)")
     p.add_argument("--view-keypoints", type=int, help="VerifyConfig.view_keypoints (default: 192)")
+    p.add_argument(
+        "--taus", help="also rank two-stage + verify at these stage-1 thresholds (comma list), e.g. 0.4,0.5"
+    )
     p.add_argument("--json", help="write per-query ranks and the summary here")
     args = p.parse_args()
 
@@ -48,6 +53,8 @@ def main() -> int:
         "image-only": ("image-only", False),
         "image-only+verify": ("image-only", True),
     }
+    taus = [float(t) for t in args.taus.split(",")] if args.taus else []
+    settings.update({f"two-stage+verify@tau{t:g}": ("two-stage", True, t) for t in taus})
     ranks: dict[str, list[int]] = {k: [] for k in settings}
     rows, t_verify = [], []
     with Retriever.open(args.store, profile="offline", settings_changes={"verify": True}) as r:
@@ -60,9 +67,9 @@ def main() -> int:
             roi = r.make_roi(q.image, q.prompt, box=q.box, mask=q.mask)
             emb = r.embed(roi, q.prompt)
             row = {"query_id": q.query_id}
-            for key, (mode, verify) in settings.items():
+            for key, (mode, verify, *tau) in settings.items():
                 t0 = time.perf_counter()
-                res = r.rank(emb, mode, top=r.n_meshes, verify=verify)
+                res = r.rank(emb, mode, top=r.n_meshes, verify=verify, threshold=tau[0] if tau else None)
                 if key == "two-stage+verify":
                     t_verify.append(time.perf_counter() - t0)
                 hit = [c.rank for c in res.candidates if c.mesh_id in expected]
