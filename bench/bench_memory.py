@@ -13,20 +13,16 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 import tracemalloc
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from bench_serve import rss_mb  # a sibling script: this folder is on sys.path when run as a file
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-
-
-def rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
 
 
 def main() -> int:
@@ -48,16 +44,16 @@ def main() -> int:
         list(ex.map(one, range(50)))  # warm-up
         tracemalloc.start()
         base = tracemalloc.take_snapshot()
-        print(f"    0 queries: RSS {rss_mb():.1f} MiB, Python allocations 0.00 MiB", flush=True)
+        print(f"    0 queries: RSS {rss_mb(os.getpid()):.1f} MiB, Python allocations 0.00 MiB", flush=True)
         for i in range(1, 5):
             list(ex.map(one, range(args.queries // 4)))
             traced = tracemalloc.get_traced_memory()[0] / 2**20
             print(
-                f"{i * args.queries // 4:5d} queries: RSS {rss_mb():.1f} MiB, Python allocations {traced:.2f} MiB"
+                f"{i * args.queries // 4:5d} queries: RSS {rss_mb(os.getpid()):.1f} MiB, Python allocations {traced:.2f} MiB"
             )
         gc.collect()
         traced = tracemalloc.get_traced_memory()[0] / 2**20
-        print(f"after gc.collect(): RSS {rss_mb():.1f} MiB, Python allocations {traced:.2f} MiB")
+        print(f"after gc.collect(): RSS {rss_mb(os.getpid()):.1f} MiB, Python allocations {traced:.2f} MiB")
         for stat in tracemalloc.take_snapshot().compare_to(base, "lineno")[:5]:
             print("   ", stat)
     return 0

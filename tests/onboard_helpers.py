@@ -10,7 +10,8 @@ from pipeline.store import Store
 
 VOLATILE = {"run_id", "seen_at", "at"}
 #: views per mesh of a default offline onboarding (4 per elevation ring: -15, +15 and +45 deg)
-V = OnboardConfig().render.views_per_ring * len(OnboardConfig().render.elevations_deg)
+_RENDER = OnboardConfig().render
+V = _RENDER.views_per_ring * len(_RENDER.elevations_deg)
 
 
 def onboard(library, store, models=None, **cfg):

@@ -97,7 +97,7 @@ def ratio_matches(roi: np.ndarray, bank: ViewBank, ratio: float) -> tuple[np.nda
     arg = sim.argmax(axis=2)  # (Q, V)
     s1 = np.take_along_axis(sim, arg[..., None], 2)[..., 0]
     np.put_along_axis(sim, arg[..., None], -np.inf, 2)
-    s2 = sim.max(axis=2) if k > 1 else np.full_like(s1, -np.inf)
+    s2 = sim.max(axis=2)  # -inf where a view has a single slot
     s1, s2, arg = s1.T, s2.T, arg.T  # (V, Q)
     # Lowe's test on unit vectors, squared: |a-b|^2 = 2 - 2 a.b, so d1 < r d2 <=> 1 - s1 < r^2 (1 - s2)
     ok = (np.maximum(1.0 - s1, 0.0) < ratio * ratio * np.maximum(1.0 - s2, 0.0)) & (s1 > floor)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pyarrow as pa
 
 from pipeline import schemas
@@ -55,10 +56,6 @@ class TextEmbedStage(EmbedStage):
         # meshes): each distinct text is encoded once
         texts = [t or "" for t in captions.column("caption").to_pylist()]
         distinct = list(dict.fromkeys(texts))
-        if len(distinct) == len(texts):
-            return self.model.encode_text(texts)
-        import numpy as np
-
         at = {t: i for i, t in enumerate(distinct)}
         return np.asarray(self.model.encode_text(distinct))[[at[t] for t in texts]]
 
