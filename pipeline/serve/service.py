@@ -113,10 +113,10 @@ class QueryService:
                 return False
             t0 = time.perf_counter()
             new = Snapshot(old.retriever.reopened())
+            with self._stats_lock:  # counted before it is published: no answer from it precedes the count
+                self.counts["reloads"] += 1
             self._snapshot = new  # requests from now on use the new state
             old.retire()  # closes when its in-flight requests are done
-            with self._stats_lock:
-                self.counts["reloads"] += 1
             log.info(
                 "store version %s -> %s: %d meshes (reopened in %.0f ms)",
                 old.version,
