@@ -47,6 +47,13 @@ def add_read_model_args(group) -> None:
         help="override a role's model; roles: captioner, text_encoder, view_encoder, clip_image_encoder, "
         "detector, segmenter",
     )
+    group.add_argument(
+        "--stage1",
+        choices=["exact", "index", "auto"],
+        default=None,
+        help="stage-1 search: exact scan (the reference), the vector index (synced to the store, exact "
+        "fallback with a note when unusable), or auto (default: the index from 1M caption rows)",
+    )
 
 
 def model_overrides(args: argparse.Namespace) -> dict[str, str]:

@@ -163,7 +163,25 @@ def fsck(path: str | Path) -> Report:
             check_keys(store, dataset, report)
     if not report.problems:
         check_views(store, report)
+        check_index(store, report)
     return report
+
+
+def check_index(store: Store, report: Report) -> None:
+    """The stage-1 index (derived data, :mod:`pipeline.index`): damaged is a problem, stale a note."""
+    from pipeline.index.sync import index_states
+
+    for state, detail in index_states(store):
+        if state == "damaged":
+            report.bad(
+                f"stage-1 index damaged ({detail}): queries use the exact path until "
+                f"`python -m pipeline.index build {store.root}` rebuilds it (derived data, nothing is lost)"
+            )
+        elif state == "stale":
+            report.notes.append(
+                f"stage-1 index stale ({detail}): the next query with --stage1 index|auto syncs it, or "
+                f"`python -m pipeline.index sync {store.root}`"
+            )
 
 
 def _all_datasets_on_disk(store: Store) -> list[str]:

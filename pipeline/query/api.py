@@ -29,7 +29,7 @@ from pipeline.query.library import StoreTables, check_models, latest_onboarding,
 from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
-from pipeline.query.stage1 import FALLBACK_UNITS, TextFilter
+from pipeline.query.stage1 import FALLBACK_UNITS
 from pipeline.query.stage2 import ViewReranker
 from pipeline.query.verify import LocalVerifier
 
@@ -53,7 +53,12 @@ class Retriever:
         self._db_lock = threading.Lock()
         self.version = None  # store version this state was read at (set by open)
         self._open_args: dict = {}
-        self.text_filter = TextFilter(tables.captions, threads)
+        from pipeline.index.choose import open_stage1
+
+        try:
+            self.text_filter = open_stage1(store, tables, settings.stage1, threads)
+        except ValueError as exc:
+            raise QueryError(str(exc)) from None
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
         from pipeline.localfeat.config import VerifyConfig
 
@@ -313,6 +318,7 @@ class Retriever:
         result = QueryResult(
             cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
         )
+        result.notes = list(getattr(self.text_filter, "notes", ()))  # e.g. the index fell back to exact
         if views and mode == "text-only":
             result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
         elif views:

@@ -181,6 +181,8 @@ def open_retriever(args: argparse.Namespace, **extra):
     from pipeline.query.api import Retriever
 
     quiet_model_loading()
+    if getattr(args, "stage1", None):
+        extra["settings_changes"] = {**extra.get("settings_changes", {}), "stage1": args.stage1}
     return Retriever.open(
         args.store,
         profile=args.profile,

@@ -81,6 +81,7 @@ class QueryResult:
     query: dict = field(default_factory=dict)  # image, prompt, ROI and models (filled by Retriever.query)
     roi: object | None = field(default=None, repr=False)  # the Roi (Retriever.query), not serialised
     view_ranking: ViewRanking | None = field(default=None, repr=False)  # rank(views=True); not serialised
+    notes: list[str] = field(default_factory=list)  # e.g. why stage 1 used the exact path
 
     @property
     def best(self) -> Candidate | None:
@@ -100,6 +101,8 @@ class QueryResult:
             "candidates": [c.to_dict() for c in self.candidates],
             "timings_ms": {k: round(v, 3) for k, v in self.timings.items()},
         }
+        if self.notes:
+            out["notes"] = list(self.notes)
         return _finite(out)
 
     def to_json(self, indent: int | None = None) -> str:

@@ -37,6 +37,7 @@ class QuerySettings:
     verify: bool = False  # local-feature verification of the top candidates (pipeline.query.verify)
     verify_top: int = 20  # candidates verified (by global score)
     verify_weight: float = 0.3  # weight of the inlier term in the fused score
+    stage1: str = "auto"  # "exact" | "index" | "auto" (index from 1M caption rows): pipeline.index.choose
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})

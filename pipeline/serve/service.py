@@ -202,6 +202,8 @@ class QueryService:
             "profile": r.profile.name,
             "meshes": r.n_meshes,
             "captions": r.text_filter.n_rows,
+            "stage1": getattr(r.text_filter, "engine", "exact"),  # which stage-1 path answers (--stage1)
+            "stage1_notes": list(getattr(r.text_filter, "notes", ())),
             "views": int(r.tables.views.num_rows),
             **counts,
             "latency_ms": {"p50": pct(50), "p99": pct(99), "window": int(len(lat))},

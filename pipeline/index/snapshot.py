@@ -1,0 +1,198 @@
+"""Stage 1 answered from the index: one consistent, read-only snapshot of an index directory.
+
+The search keeps the exact path's semantics (``sql/stage1_text_filter.sql``):
+
+* tau: an IVF range search at ``tau - eps`` (``eps``: the codec's error bound on an inner product,
+  measured at build, see :mod:`pipeline.index.build`) over the base, an exact scan of the small delta;
+  every model with a surviving caption is rescored exactly (all its captions, float32, from the
+  memory-mapped vector file), score = max over its captions, kept when >= tau;
+* nothing passes (or no tau): a k-NN search of the caption rows finds the candidate models, rescored the
+  same way; then the fallback counts ``fallback_k`` caption rows (the paper's) or models, like the SQL.
+
+Returned scores are therefore exact inner products; what the index can lose is a model none of whose
+captions lies in the probed lists (measured as tau-set recall by ``bench/bench_stage1_index.py``).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from pipeline.index.layout import check_files
+from pipeline.query.stage1 import FALLBACK_UNITS, Stage1Result
+
+
+class IndexDamaged(RuntimeError):
+    """The index directory cannot be read as its manifest describes."""
+
+
+def _ranges(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    """Concatenation of ``arange(s, e)`` for each pair (vectorised)."""
+    lens = ends - starts
+    total = int(lens.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    offs = np.repeat(starts - np.concatenate(([0], np.cumsum(lens)[:-1])), lens)
+    return np.arange(total, dtype=np.int64) + offs
+
+
+class IndexSnapshot:
+    """The index as its manifest described it when opened, numbered against ``active_ids`` (sorted mesh
+    ids of the active meshes: ``mesh_idx`` is the position in it, as on the exact path)."""
+
+    def __init__(self, directory: Path, man: dict, active_ids: pa.Array) -> None:
+        import faiss
+
+        problem = check_files(directory, man)
+        if problem:
+            raise IndexDamaged(problem)
+        self.directory, self.manifest = directory, man
+        self.dim = int(man["dim"])
+        self.eps = float(man["eps"])
+        self.nprobe = int(man["nprobe"])
+        try:
+            self.index = faiss.read_index(str(directory / man["base"]["faiss"]))
+            with np.load(directory / man["base"]["meta"]) as meta:
+                base_mesh = meta["mesh_code"].astype(np.int32)
+                self.by_mesh = meta["by_mesh"].astype(np.int64)
+                self.mesh_start = meta["mesh_start"].astype(np.int64)
+            with np.load(directory / man["delta"]["file"], allow_pickle=False) as d:
+                d_mesh = d["mesh_code"].astype(np.int32)
+                dead = d["dead"].astype(np.int64)
+            import pyarrow.ipc as ipc
+
+            base_ids = ipc.open_file(str(directory / man["base"]["meshes"])).read_all().column(0)
+        except (OSError, RuntimeError, ValueError, KeyError, pa.ArrowException) as exc:
+            raise IndexDamaged(f"{directory}: {str(exc).splitlines()[0][:120]}") from None
+        n_base, n_slots = int(man["base"]["n_slots"]), int(man["n_slots"])
+        if len(base_mesh) != n_base or n_base + len(d_mesh) != n_slots or self.index.d != self.dim:
+            raise IndexDamaged(f"{directory}: slot counts do not match the manifest")
+        if self.index.ntotal != man["base"]["ntotal"]:
+            raise IndexDamaged(f"{directory}: the IVF file holds {self.index.ntotal} rows, not as recorded")
+        self.index.nprobe = self.nprobe
+        q = getattr(self.index, "quantizer", None)
+        if q is not None and hasattr(faiss.downcast_index(q), "hnsw"):
+            faiss.downcast_index(q).hnsw.efSearch = max(64, 2 * self.nprobe)
+        self.n_base, self.n_slots = n_base, n_slots
+        all_ids = pa.concat_arrays([base_ids.combine_chunks(), pa.array(man["delta"]["meshes"], pa.string())])
+        self.code_to_idx = (
+            pc.index_in(all_ids, value_set=active_ids).fill_null(-1).to_numpy().astype(np.int32)
+        )
+        self.slot_mesh = np.concatenate([base_mesh, d_mesh])
+        self.alive = np.ones(n_slots, bool)
+        self.alive[dead] = False
+        self.vectors = np.memmap(directory / man["vectors"], np.float32, "r", shape=(n_slots, self.dim))
+        self.delta_vecs = np.array(self.vectors[n_base:], np.float32)  # small: kept resident
+        self.delta_alive = self.alive[n_base:]
+        self.n_base_meshes = len(self.mesh_start) - 1
+        order = np.argsort(d_mesh, kind="stable")
+        self.delta_by_mesh = order + n_base
+        self.delta_codes = d_mesh[order]
+        live = self.alive & (self.code_to_idx[self.slot_mesh] >= 0)
+        self.n_rows = int(live.sum())  # caption rows a query can see
+
+    # ------------------------------------------------------------------ helpers
+    def _slots_of(self, codes: np.ndarray) -> np.ndarray:
+        """Live slots of the mesh ``codes`` (base via the by-mesh order, delta by search)."""
+        b = codes[codes < self.n_base_meshes]
+        base = self.by_mesh[_ranges(self.mesh_start[b], self.mesh_start[b + 1])] if len(b) else []
+        lo = np.searchsorted(self.delta_codes, codes, "left")
+        hi = np.searchsorted(self.delta_codes, codes, "right")
+        delta = self.delta_by_mesh[_ranges(lo, hi)]
+        slots = np.concatenate([np.asarray(base, np.int64), delta])
+        return slots[self.alive[slots]]
+
+    def _rescore(self, q: np.ndarray, codes: np.ndarray):
+        """(slots, their mesh_idx, exact scores) of every live caption of the active ``codes``."""
+        codes = np.unique(codes)
+        codes = codes[self.code_to_idx[codes] >= 0]
+        slots = np.sort(self._slots_of(codes))  # sorted: the memory map is read front to back
+        scores = self.vectors[slots] @ q if len(slots) else np.zeros(0, np.float32)
+        return slots, self.code_to_idx[self.slot_mesh[slots]], scores.astype(np.float32)
+
+    @staticmethod
+    def _per_mesh(mesh_idx: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distinct mesh_idx, max score), any order."""
+        if not len(mesh_idx):
+            return np.zeros(0, np.int32), np.zeros(0, np.float32)
+        order = np.lexsort((-scores, mesh_idx))
+        m, s = mesh_idx[order], scores[order]
+        first = np.concatenate(([True], m[1:] != m[:-1]))
+        return m[first].astype(np.int32), s[first]
+
+    def _delta_scores(self, q: np.ndarray) -> np.ndarray:
+        s = self.delta_vecs @ q if len(self.delta_vecs) else np.zeros(0, np.float32)
+        return np.where(self.delta_alive, s, -np.inf)
+
+    # ------------------------------------------------------------------ search
+    def _tau_candidates(self, q: np.ndarray, tau: float) -> np.ndarray:
+        radius = float(tau) - self.eps
+        if self.index.ntotal:
+            _, _, labels = self.index.range_search(q[None, :], radius)
+            labels = labels[self.alive[labels]]
+        else:
+            labels = np.zeros(0, np.int64)
+        d = np.flatnonzero(self._delta_scores(q) >= radius) + self.n_base
+        return self.slot_mesh[np.concatenate([labels, d])]
+
+    def _knn_candidates(self, q: np.ndarray, k_rows: int) -> np.ndarray:
+        """Mesh codes of (about) the ``k_rows`` best live caption rows of active meshes."""
+        want = k_rows
+        while True:
+            k = min(want, max(self.index.ntotal, 1))
+            if self.index.ntotal:
+                dist, labels = self.index.search(q[None, :], k)
+                ok = labels[0] >= 0
+                dist, labels = dist[0][ok], labels[0][ok]
+                keep = self.alive[labels] & (self.code_to_idx[self.slot_mesh[labels]] >= 0)
+                dist, labels = dist[keep], labels[keep]
+            else:
+                dist, labels = np.zeros(0, np.float32), np.zeros(0, np.int64)
+            ds = self._delta_scores(q)
+            dl = np.flatnonzero(np.isfinite(ds) & (self.code_to_idx[self.slot_mesh[self.n_base :]] >= 0))
+            codes = self.slot_mesh[np.concatenate([labels, dl + self.n_base])]
+            if len(labels) + len(dl) >= k_rows or k >= self.index.ntotal:
+                return codes
+            want *= 4
+
+    def run(
+        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
+    ) -> Stage1Result:
+        """Same contract as :meth:`pipeline.query.stage1.TextFilter.run`."""
+        if fallback_unit not in FALLBACK_UNITS:
+            raise ValueError(
+                f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}"
+            )
+        q = np.asarray(query, dtype=np.float32).reshape(-1)
+        if q.shape[0] != self.dim:
+            raise ValueError(f"query vector has {q.shape[0]} dims, captions have {self.dim}")
+        t0 = time.perf_counter()
+        k = int(fallback_k)
+        if threshold is not None:
+            _, m_idx, s = self._rescore(q, self._tau_candidates(q, threshold))
+            m, best = self._per_mesh(m_idx, s)
+            keep = best >= np.float32(threshold)
+            if keep.any():
+                m, best = m[keep], best[keep]
+                order = np.lexsort((m, -best))
+                return Stage1Result(m[order], best[order], False, time.perf_counter() - t0)
+        # fallback: enough caption rows that the top-k models (and their top-k captions) are among them
+        _, m_idx, s = self._rescore(q, self._knn_candidates(q, 8 * k + 64))
+        m, best = self._per_mesh(m_idx, s)
+        order = np.lexsort((m, -best))[:k]
+        m, best = m[order], best[order]
+        if fallback_unit == "captions" and len(m):
+            sel = np.isin(m_idx, m)
+            cap_m, cap_s = m_idx[sel], s[sel]
+            top = np.lexsort((cap_m, -cap_s))[:k]
+            keep = np.isin(m, cap_m[top])
+            m, best = m[keep], best[keep]
+        return Stage1Result(m.astype(np.int32), best.astype(np.float32), True, time.perf_counter() - t0)
+
+    def close(self) -> None:
+        self.index = None
+        self.vectors = None

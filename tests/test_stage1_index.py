@@ -1,0 +1,254 @@
+"""The stage-1 index: same answers as the exact path, incremental sync, no churn on compaction, exact
+fallback with a note when it cannot be used, fsck, and ``--stage1``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from query_helpers import embedding_table, make_store, unit
+
+from pipeline.index.choose import IndexUnavailable, open_index, open_stage1
+from pipeline.index.layout import index_dir, read_manifest
+from pipeline.index.sync import status, sync, text_dataset
+from pipeline.query.library import StoreTables, latest_onboarding
+from pipeline.query.stage1 import TextFilter
+from pipeline.store import Store
+
+DIM = 16
+RUN = "20250101T000000000000Z-aaaaaa"
+
+
+def clustered(n_mesh: int, seed: int = 0) -> dict[str, dict]:
+    rng = np.random.default_rng(seed)
+    topics = rng.standard_normal((max(4, n_mesh // 20), DIM))
+    meshes = {}
+    for i in range(n_mesh):
+        centre = topics[rng.integers(len(topics))] + 0.5 * rng.standard_normal(DIM)
+        meshes[f"m{i:05d}"] = {
+            "name": f"m{i}",
+            "captions": unit(centre + 0.4 * rng.standard_normal((8, DIM))),
+            "views": unit(rng.standard_normal((2, 4))),
+        }
+    return meshes
+
+
+@pytest.fixture
+def store_path(tmp_path):
+    return make_store(tmp_path / "store", clustered(300))
+
+
+def tables_of(store):
+    return StoreTables(store, latest_onboarding(store), use_cache=False)
+
+
+def snapshot(store, exhaustive: bool = True):
+    snap = open_index(store, tables_of(store))
+    if exhaustive:  # every list probed: the index must then give exactly the exact path's answer
+        snap.index.nprobe = snap.index.nlist
+    return snap
+
+
+def queries(n: int = 24, seed: int = 1) -> np.ndarray:
+    """Perturbed captions of the fixture's models."""
+    x = np.concatenate([m["captions"] for m in clustered(300).values()])
+    rng = np.random.default_rng(seed)
+    base = x[rng.integers(len(x), size=n)]
+    return unit(base + 0.3 * rng.standard_normal(base.shape)).astype(np.float32)
+
+
+def commit(path, meshes: dict[str, dict], run_id: str):
+    from pipeline import schemas
+
+    rows, ids, idx, vecs = [], [], [], []
+    from datetime import datetime, timezone
+
+    for mid, m in meshes.items():
+        rows.append(
+            {
+                "mesh_id": mid,
+                "source_path": f"{m['name']}/model.obj",
+                "library_root": "/library",
+                "name": m["name"],
+                "format": "obj",
+                "status": m.get("status", "active"),
+                "seen_at": datetime(2025, 1, 2, tzinfo=timezone.utc),
+                "run_id": run_id,
+            }
+        )
+        for i, v in enumerate(m.get("captions", [])):
+            ids.append(mid)
+            idx.append(i)
+            vecs.append(v)
+    with Store.open(path, writable=True) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        tables = {"meshes": pa.Table.from_pylist(rows, schema=schemas.MESHES)}
+        if vecs:
+            tables[ds] = embedding_table(ids, idx, vecs, enc, fp, run_id)
+        store.commit(tables, run_id)
+
+
+def answers_equal(a, b):
+    assert a.mesh_idx.tolist() == b.mesh_idx.tolist()
+    assert a.used_fallback == b.used_fallback
+    np.testing.assert_allclose(a.scores, b.scores, atol=1e-5)
+
+
+def test_index_equals_exact_on_tau_sets_and_fallbacks(store_path):
+    with Store.open(store_path) as store:
+        exact = TextFilter(tables_of(store).captions)
+        snap = snapshot(store)
+        qs = queries()
+        for q in qs:
+            s = np.sort(exact.caption_scores(q)[1])[::-1]
+            for tau in (float(s[5] + s[6]) / 2, float(s[60] + s[61]) / 2, 1.5):
+                for unit_ in ("captions", "meshes"):
+                    answers_equal(snap.run(q, tau, 10, unit_), exact.run(q, tau, 10, unit_))
+            answers_equal(snap.run(q, None, 5, "meshes"), exact.run(q, None, 5, "meshes"))
+
+
+def test_default_probe_keeps_top1(store_path):
+    with Store.open(store_path) as store:
+        exact = TextFilter(tables_of(store).captions)
+        snap = snapshot(store, exhaustive=False)
+        same = [snap.run(q, 1.5, 10).mesh_idx[0] == exact.run(q, 1.5, 10).mesh_idx[0] for q in queries()]
+    assert np.mean(same) >= 0.9
+
+
+def test_manifest_records_version_encoder_and_fingerprint(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        rep = sync(store, ds, fp, enc)
+        man = read_manifest(index_dir(store.root, ds, fp))
+        assert rep.action == "build"
+        assert (man["delta_version"], man["encoder_id"], man["fingerprint"]) == (store.version(ds), enc, fp)
+        assert sync(store, ds, fp, enc).action == "none"
+
+
+def test_commit_adds_and_force_replaces_without_rebuild(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        gen = sync(store, ds, fp, enc).manifest["generation"]
+    new = {"new-mesh": {"name": "new", "captions": unit(np.tile(np.eye(DIM)[3], (8, 1)))}}
+    commit(store_path, new, "20250102T000000000000Z-bbbbbb")
+    redo = {"m00007": {"name": "m7", "captions": unit(np.tile(np.eye(DIM)[5], (8, 1)))}}
+    commit(store_path, redo, "20250103T000000000000Z-cccccc")  # a --force re-run of one mesh
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert (rep.action, rep.added, rep.removed) == ("sync", 16, 8)
+        assert rep.manifest["generation"] == gen  # the IVF base was not rewritten
+        tables = tables_of(store)
+        snap = snapshot(store)
+        exact = TextFilter(tables.captions)
+        ids = tables.meshes.column("mesh_id").to_pylist()
+        for axis, mid in ((3, "new-mesh"), (5, "m00007")):
+            q = np.eye(DIM, dtype=np.float32)[axis]
+            r = snap.run(q, 0.99, 10)
+            assert ids[r.mesh_idx[0]] == mid and r.scores[0] == pytest.approx(1.0, abs=1e-5)
+            answers_equal(r, exact.run(q, 0.99, 10))
+        for q in queries():
+            answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))
+
+
+def test_removed_mesh_is_not_returned(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+        q = clustered(300)["m00012"]["captions"][0].astype(np.float32)
+    commit(store_path, {"m00012": {"name": "m12", "status": "removed"}}, "20250102T000000000000Z-dddddd")
+    with Store.open(store_path) as store:
+        tables = tables_of(store)
+        snap = snapshot(store)
+        exact = TextFilter(tables.captions)
+        assert "m00012" not in tables.meshes.column("mesh_id").to_pylist()
+        answers_equal(snap.run(q, 0.5, 10), exact.run(q, 0.5, 10))
+        answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))
+
+
+def test_compaction_causes_no_churn(store_path):
+    from pipeline.compact import compact_dataset
+
+    for k in range(3):  # small files re-embedding meshes m00000..m00002: compaction drops superseded rows
+        commit(store_path, clustered(3, seed=10 + k), f"2025010{2 + k}T000000000000Z-eeeee{k}")
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        before = sync(store, ds, fp, enc).manifest
+    with Store.open(store_path, writable=True) as store:
+        out = compact_dataset(store, ds, "20250109T000000000000Z-ffffff")
+        assert out["files_after"] < out["files_before"]
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert (rep.action, rep.added, rep.removed) == ("sync", 0, 0)
+        assert rep.manifest["n_slots"] == before["n_slots"]
+        assert rep.manifest["files"] != before["files"]
+        assert status(store, ds, fp, enc)[0] == "fresh"
+
+
+def test_damaged_index_falls_back_with_note_and_fsck_reports(store_path):
+    from pipeline.fsck import fsck
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        man = sync(store, ds, fp, enc).manifest
+    directory = index_dir(store_path, ds, fp)
+    (directory / man["base"]["faiss"]).write_bytes(b"not an index")
+    report = fsck(store_path)
+    assert any("stage-1 index" in p and "damaged" in p for p in report.problems)
+    with Store.open(store_path) as store:
+        tables = tables_of(store)
+        f = open_stage1(store, tables, "index")  # the open rebuilds a damaged index...
+        assert f.engine == "index"
+    (directory / read_manifest(directory)["base"]["meta"]).write_bytes(b"junk")
+    import pipeline.index.sync as sync_mod
+
+    with Store.open(store_path) as store, pytest.MonkeyPatch.context() as mp:
+        mp.setattr(sync_mod, "sync", lambda *a, **k: (_ for _ in ()).throw(OSError("read-only")))
+        tables = tables_of(store)
+        f = open_stage1(store, tables, "index")  # ...but when it cannot, the exact path answers
+        assert f.engine == "exact" and "damaged" in f.notes[0] and "exact path" in f.notes[0]
+        exact = TextFilter(tables.captions)
+        q = queries(1)[0]
+        answers_equal(f.run(q, 0.5, 10), exact.run(q, 0.5, 10))
+
+
+def test_stale_index_falls_back_and_fsck_notes_it(store_path, monkeypatch):
+    from pipeline.fsck import fsck
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+    commit(
+        store_path,
+        {"late": {"name": "late", "captions": unit(np.ones((8, DIM)))}},
+        "20250102T000000000000Z-gggggg",
+    )
+    assert any("stage-1 index" in n and "stale" in n for n in fsck(store_path).notes)
+    import pipeline.index.sync as sync_mod
+
+    monkeypatch.setattr(sync_mod, "sync", lambda *a, **k: (_ for _ in ()).throw(OSError("read-only")))
+    with Store.open(store_path) as store:
+        with pytest.raises(IndexUnavailable, match="stale"):
+            open_index(store, tables_of(store))
+        f = open_stage1(store, tables_of(store), "index")
+        assert f.engine == "exact" and "stale" in f.notes[0]
+
+
+def test_stage1_option_on_retriever_and_cli(store_path):
+    from pipeline.cli_common import OneLineParser, add_read_model_args
+    from pipeline.query.api import Retriever
+    from pipeline.query.errors import QueryError
+    from query_helpers import fake_models
+
+    models = fake_models()
+    kw = {"models": models, "use_cache": False, "preload": False}
+    with Retriever.open(store_path, settings_changes={"stage1": "index"}, **kw) as r:
+        assert r.text_filter.engine == "index"
+    with Retriever.open(store_path, settings_changes={"stage1": "auto"}, **kw) as r:
+        assert r.text_filter.engine == "exact"  # 2,400 rows: far below the auto threshold
+    with pytest.raises(QueryError, match="stage-1 mode"):
+        Retriever.open(store_path, settings_changes={"stage1": "fast"}, **kw)
+    p = OneLineParser()
+    add_read_model_args(p)
+    assert p.parse_args(["--stage1", "index"]).stage1 == "index"
+    with pytest.raises(SystemExit):
+        p.parse_args(["--stage1", "fast"])
