@@ -234,10 +234,11 @@ def test_stale_index_falls_back_and_fsck_notes_it(store_path, monkeypatch):
 
 
 def test_stage1_option_on_retriever_and_cli(store_path):
+    from query_helpers import fake_models
+
     from pipeline.cli_common import OneLineParser, add_read_model_args
     from pipeline.query.api import Retriever
     from pipeline.query.errors import QueryError
-    from query_helpers import fake_models
 
     models = fake_models()
     kw = {"models": models, "use_cache": False, "preload": False}

@@ -31,7 +31,10 @@ NPROBE_FRACTION = 0.02
 MIN_NPROBE = 16
 #: eps = EPS_MARGIN x the largest coded-vs-exact inner-product error on the build sample
 EPS_MARGIN = 1.5
-TRAIN_PER_LIST = 48
+#: k-means on TRAIN_PER_LIST sampled rows per list, KMEANS_ITERS iterations (faiss's default is 25:
+#: the lists' quality barely changes, the build takes a third of the time)
+TRAIN_PER_LIST = 32
+KMEANS_ITERS = 10
 ADD_CHUNK = 131072
 READ_BATCH = 65536
 
@@ -225,6 +228,7 @@ def write_base(
         codec = man.get("codec") or codec
         man["nlist"], man["nprobe"], man["codec"] = nlist, nprobe, codec
         index = faiss.index_factory(dim, factory_string(nlist, codec), faiss.METRIC_INNER_PRODUCT)
+        faiss.extract_index_ivf(index).cp.niter = KMEANS_ITERS
         sample = np.sort(rng.choice(live, min(len(live), max(TRAIN_PER_LIST * nlist, 4096)), replace=False))
         if len(sample):
             index.train(np.ascontiguousarray(vecs[sample]))
