@@ -33,7 +33,7 @@ MIN_NPROBE = 16
 EPS_MARGIN = 1.5
 #: k-means on TRAIN_PER_LIST sampled rows per list, KMEANS_ITERS iterations (faiss's default is 25:
 #: the lists' quality barely changes, the build takes a third of the time)
-TRAIN_PER_LIST = 32
+TRAIN_PER_LIST = 40
 KMEANS_ITERS = 10
 ADD_CHUNK = 131072
 READ_BATCH = 65536
