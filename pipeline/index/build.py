@@ -2,8 +2,10 @@
 
 Codec, chosen by measurement (docs/performance.md, "Stage-1 index"): faiss IVF with 8-bit scalar
 quantisation of the residuals (``IVF<n>,SQ8``) up to ``SQ4_ROWS`` rows, 4-bit beyond (half the memory:
-10M rows of 384-d take 1.9 GB of codes instead of 3.8 GB). ``nlist`` grows as ``2 sqrt(n)``; above 1024
-lists the coarse quantiser is an HNSW graph, so assigning 10M rows does not cost 10M x nlist products.
+10M rows of 384-d take 1.9 GB of codes instead of 3.8 GB). ``nlist`` grows as ``2 sqrt(n)``; the coarse
+quantiser is flat (spherical k-means). An HNSW coarse quantiser (``IVF<n>_HNSW32``) would assign rows
+faster, but with inner-product centroids it left a 1M-row index with lists of 122k rows next to lists of
+a few hundred, and queries 30x slower (docs/performance.md, "Stage-1 index").
 
 The codec's error bound ``eps`` (how far a coded inner product can lie from the exact one) is measured at
 build on a sample: ``EPS_MARGIN`` times the largest error seen, so the range search at ``tau - eps``
@@ -47,8 +49,7 @@ def ivf_params(n_rows: int) -> tuple[int, int, str]:
 
 
 def factory_string(nlist: int, codec: str) -> str:
-    coarse = f"IVF{nlist}_HNSW32" if nlist >= 1024 else f"IVF{nlist}"
-    return f"{coarse},{'SQ4' if codec == 'sq4' else 'SQ8'}"
+    return f"IVF{nlist},{'SQ4' if codec == 'sq4' else 'SQ8'}"
 
 
 def vectors_of(table: pa.Table) -> np.ndarray:
@@ -228,7 +229,9 @@ def write_base(
         codec = man.get("codec") or codec
         man["nlist"], man["nprobe"], man["codec"] = nlist, nprobe, codec
         index = faiss.index_factory(dim, factory_string(nlist, codec), faiss.METRIC_INNER_PRODUCT)
-        faiss.extract_index_ivf(index).cp.niter = KMEANS_ITERS
+        ivf = faiss.extract_index_ivf(index)
+        ivf.cp.niter = KMEANS_ITERS
+        ivf.cp.spherical = True  # unit centroids: inner-product assignment = nearest centroid
         sample = np.sort(rng.choice(live, min(len(live), max(TRAIN_PER_LIST * nlist, 4096)), replace=False))
         if len(sample):
             index.train(np.ascontiguousarray(vecs[sample]))

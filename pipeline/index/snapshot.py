@@ -5,7 +5,7 @@ The search keeps the exact path's semantics (``sql/stage1_text_filter.sql``):
 * tau: an IVF range search at ``tau - eps`` (``eps``: the codec's error bound on an inner product,
   measured at build, see :mod:`pipeline.index.build`) over the base, an exact scan of the small delta;
   every model with a surviving caption is rescored exactly (all its captions, float32, from the
-  memory-mapped vector file), score = max over its captions, kept when >= tau;
+  vector file, read by row), score = max over its captions, kept when >= tau;
 * nothing passes (or no tau): a k-NN search of the caption rows finds the candidate models, rescored the
   same way; then the fallback counts ``fallback_k`` caption rows (the paper's) or models, like the SQL.
 
@@ -15,6 +15,7 @@ captions lies in the probed lists (measured as tau-set recall by ``bench/bench_s
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -85,8 +86,10 @@ class IndexSnapshot:
         self.slot_mesh = np.concatenate([base_mesh, d_mesh])
         self.alive = np.ones(n_slots, bool)
         self.alive[dead] = False
-        self.vectors = np.memmap(directory / man["vectors"], np.float32, "r", shape=(n_slots, self.dim))
-        self.delta_vecs = np.array(self.vectors[n_base:], np.float32)  # small: kept resident
+        # survivors' rows are read with pread, not through a memory map: pages a map touched would count
+        # in this process's resident memory (the file is 1.5 KB x rows: 15 GB at 10M rows of 384-d)
+        self._fd = os.open(directory / man["vectors"], os.O_RDONLY)
+        self.delta_vecs = self.read_rows(np.arange(n_base, n_slots))  # small: kept resident
         self.delta_alive = self.alive[n_base:]
         self.n_base_meshes = len(self.mesh_start) - 1
         order = np.argsort(d_mesh, kind="stable")
@@ -96,6 +99,22 @@ class IndexSnapshot:
         self.n_rows = int(live.sum())  # caption rows a query can see
 
     # ------------------------------------------------------------------ helpers
+    def read_rows(self, slots: np.ndarray) -> np.ndarray:
+        """Float32 rows of sorted ``slots`` from the vector file (one read per run of consecutive slots)."""
+        out = np.empty((len(slots), self.dim), np.float32)
+        if not len(slots):
+            return out
+        row = self.dim * 4
+        breaks = np.flatnonzero(np.diff(slots) != 1) + 1
+        starts = np.concatenate(([0], breaks))
+        ends = np.concatenate((breaks, [len(slots)]))
+        for a, b in zip(starts.tolist(), ends.tolist(), strict=True):
+            buf = os.pread(self._fd, (b - a) * row, int(slots[a]) * row)
+            if len(buf) != (b - a) * row:
+                raise IndexDamaged(f"{self.directory / self.manifest['vectors']} is shorter than its rows")
+            out[a:b] = np.frombuffer(buf, np.float32).reshape(b - a, self.dim)
+        return out
+
     def _slots_of(self, codes: np.ndarray) -> np.ndarray:
         """Live slots of the mesh ``codes`` (base via the by-mesh order, delta by search)."""
         b = codes[codes < self.n_base_meshes]
@@ -110,8 +129,8 @@ class IndexSnapshot:
         """(slots, their mesh_idx, exact scores) of every live caption of the active ``codes``."""
         codes = np.unique(codes)
         codes = codes[self.code_to_idx[codes] >= 0]
-        slots = np.sort(self._slots_of(codes))  # sorted: the memory map is read front to back
-        scores = self.vectors[slots] @ q if len(slots) else np.zeros(0, np.float32)
+        slots = np.sort(self._slots_of(codes))  # sorted: the file is read front to back
+        scores = self.read_rows(slots) @ q if len(slots) else np.zeros(0, np.float32)
         return slots, self.code_to_idx[self.slot_mesh[slots]], scores.astype(np.float32)
 
     @staticmethod
@@ -195,4 +214,6 @@ class IndexSnapshot:
 
     def close(self) -> None:
         self.index = None
-        self.vectors = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
