@@ -253,3 +253,26 @@ def test_stage1_option_on_retriever_and_cli(store_path):
     assert p.parse_args(["--stage1", "index"]).stage1 == "index"
     with pytest.raises(SystemExit):
         p.parse_args(["--stage1", "fast"])
+
+
+def test_drift_past_the_bound_retrains(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        gen = sync(store, ds, fp, enc).manifest["generation"]
+    rng = np.random.default_rng(5)
+    far = {  # captions unlike anything the lists were trained on
+        f"far{i}": {
+            "name": f"far{i}",
+            "captions": unit(rng.standard_normal((8, DIM)) * 0.05 + (i % DIM == 0)),
+        }
+        for i in range(8)
+    }
+    commit(store_path, far, "20250102T000000000000Z-hhhhhh")
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert rep.action == "retrain" and "drift" in rep.reason
+        assert rep.manifest["generation"] == gen + 1 and rep.manifest["drift"]["added_rows"] == 0
+        exact = TextFilter(tables_of(store).captions)
+        snap = snapshot(store)
+        for q in queries(8):
+            answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))

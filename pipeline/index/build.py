@@ -276,6 +276,7 @@ def write_base(
                 key_order=key_order,
                 by_mesh=by_mesh,
                 mesh_start=mesh_start,
+                centroids=centroids_of(index),
             )
 
     _atomic(directory / meta_name, save_meta)
@@ -336,20 +337,28 @@ def measure_eps(
 
 def coarse_residual(index, vecs, rows: np.ndarray, rng=None, n: int = 8192) -> float:
     """Mean squared distance of (a sample of) ``rows`` to their nearest IVF centroid."""
-    import faiss
 
     if not len(rows):
         return 0.0
     if rng is not None and len(rows) > n:
         rows = np.sort(rng.choice(rows, n, replace=False))
     x = np.ascontiguousarray(vecs[rows])
-    return residual_of(faiss.extract_index_ivf(index), x)
+    return residual_of(centroids_of(index), x)
 
 
-def residual_of(ivf, x: np.ndarray) -> float:
-    _, assign = ivf.quantizer.search(x, 1)
-    cents = ivf.quantizer.reconstruct_batch(assign[:, 0])
-    return float(np.mean(np.sum((x - cents) ** 2, axis=1)))
+def centroids_of(index) -> np.ndarray:
+    import faiss
+
+    ivf = faiss.extract_index_ivf(index)
+    return ivf.quantizer.reconstruct_n(0, ivf.nlist)
+
+
+def residual_of(centroids: np.ndarray, x: np.ndarray) -> float:
+    """Mean squared distance of rows ``x`` to their nearest (unit) centroid: the drift statistic."""
+    if not len(x) or not len(centroids):
+        return 0.0
+    best = np.argmax(x @ centroids.T, axis=1)
+    return float(np.mean(np.sum((x - centroids[best]) ** 2, axis=1)))
 
 
 def _atomic(path: Path, write) -> None:

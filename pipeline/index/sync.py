@@ -230,13 +230,11 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
         slot_view = np.concatenate([slot_view, np.array([r[1] for r in new_rows], np.int16)])
         slot_run = np.concatenate([slot_run, np.array([r[2] for r in new_rows], np.int32)])
         alive = np.concatenate([alive, np.ones(len(new_rows), bool)])
-        index = faiss.read_index(str(directory / man["base"]["faiss"]))
         drift = dict(man["drift"])
         drift["added_rows"] += len(new_rows)
-        drift["added_residual_sum"] += residual_of(faiss.extract_index_ivf(index), x) * len(new_rows)
+        drift["added_residual_sum"] += residual_of(base["centroids"], x) * len(new_rows)
         man["drift"] = drift
-    else:
-        index = None
+    index = None  # the IVF file is read only when the base is rewritten
     n_slots = len(slot_mesh)
     dead = np.flatnonzero(~alive)
     prev_names = {
