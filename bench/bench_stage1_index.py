@@ -209,6 +209,14 @@ def numpy_floor(x: np.ndarray, q: np.ndarray, tau: float | None, k: int):
 
 
 def peak_rss_mb() -> float:
+    """Peak resident memory of this process image (VmHWM: reset by exec, unlike ru_maxrss, which a
+    child started from a large parent inherits)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
