@@ -11,8 +11,8 @@ Layout: every caption vector is cut into ``SLICES`` equal slices, stored as colu
 short chains instead of one long one let the CPU overlap them, which cuts stage 1's CPU time by about a
 third at 1M rows (docs/performance.md (Query)). The sum is the same inner product up to float rounding (~1e-7).
 
-:meth:`TextFilter.run` computes the inner products with NumPy (BLAS) over zero-copy views of the same
-slices, takes the max per model (one ``reduceat`` over rows grouped by model once), and lets
+:meth:`TextFilter.run` computes the inner products with NumPy (BLAS, one matrix-vector product over a
+contiguous copy of the vectors made on first use), takes the max per model (one ``reduceat`` over rows grouped by model once), and lets
 ``sql/stage1_select.sql`` apply tau and the fallback: DuckDB's ``list_dot_product`` made the all-SQL
 version 3.1x the NumPy floor at 1M rows, this one is within 2x (docs/performance.md, "Stage-1 index").
 :meth:`TextFilter.run_sql` keeps the all-SQL statement (``sql/stage1_text_filter.sql``) as the reference.
@@ -137,37 +137,36 @@ class TextFilter:
         return self._kernel_parts()[4], rows
 
     def _kernel_parts(self) -> tuple:
-        """(per record batch: (offset, [slice matrices]), row order by model, group starts, model per group),
-        built once; the slice matrices are zero-copy views of the Arrow buffers."""
+        """(the caption matrix (rows, width x 8) float32, row order by model, group starts, model per group,
+        model per row), built once.
+
+        One contiguous matrix, so a query is one BLAS matrix-vector product: a product per record batch
+        and slice (128 calls at 1M rows) cost 6x more under load, in thread start-up, than the one call.
+        The copy replaces the memory-mapped slices in the hot path (their pages are no longer touched)."""
         if self._kernel is None:
-            parts, offset = [], 0
+            x = np.empty((self.n_rows, self.width * SLICES), np.float32)
+            offset = 0
             for batch in self.table.to_batches():
-                mats = []
                 for i in range(SLICES):
                     col = batch.column(f"e{i}")
-                    flat = col.flatten().to_numpy(zero_copy_only=False)
-                    mats.append(np.asarray(flat, np.float32).reshape(len(col), self.width))
-                parts.append((offset, mats))
+                    flat = np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float32)
+                    x[offset : offset + len(col), i * self.width : (i + 1) * self.width] = flat.reshape(
+                        len(col), self.width
+                    )
                 offset += batch.num_rows
             mesh = self.table.column("mesh_idx").to_numpy().astype(np.int32)
             order = np.argsort(mesh, kind="stable")
             sm = mesh[order]
             starts = np.flatnonzero(np.concatenate(([True], sm[1:] != sm[:-1]))) if len(sm) else sm
-            self._kernel = (parts, order, starts, sm[starts].astype(np.int32), mesh)
+            self._kernel = (x, order, starts, sm[starts].astype(np.int32), mesh)
         return self._kernel
 
-    def scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def scores(self, query: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """(per caption row: inner product, per model: (mesh_idx, max over its captions)) for ``query``."""
-        parts, order, starts, models, _ = self._kernel_parts()
+        x, order, starts, models, _ = self._kernel_parts()
         q = np.zeros(self.width * SLICES, np.float32)
         q[: self.dim] = query
-        qs = [q[i * self.width : (i + 1) * self.width] for i in range(SLICES)]
-        out = np.empty(self.n_rows, np.float32)
-        for offset, mats in parts:
-            acc = mats[0] @ qs[0]
-            for m, qi in zip(mats[1:], qs[1:], strict=True):
-                acc += m @ qi
-            out[offset : offset + len(acc)] = acc
+        out = x @ q
         best = np.maximum.reduceat(out[order], starts) if len(out) else out
         return out, (models, best)
 
