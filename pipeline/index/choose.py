@@ -105,11 +105,15 @@ def open_index(store, tables):
     state, detail = status(store, dataset, fp, enc)
     if state != "fresh":
         raise IndexUnavailable(f"stage-1 index {state} ({detail})")
-    try:
-        man = read_manifest(directory)
-        active = tables.meshes.column("mesh_id").combine_chunks()
-        return IndexSnapshot(
-            directory, man, pa.array(active.to_pylist(), pa.string()) if active.offset else active
-        )
-    except (IndexDamaged, ValueError) as exc:
-        raise IndexUnavailable(f"stage-1 index damaged ({exc})") from None
+    active = tables.meshes.column("mesh_id").combine_chunks()
+    active = pa.array(active.to_pylist(), pa.string()) if active.offset else active
+    for attempt in range(2):  # a writer may replace the generation between the manifest and its files
+        try:
+            man = read_manifest(directory)
+            if man is None or man["delta_version"] != store.version(dataset):
+                raise IndexUnavailable("stage-1 index stale (another process moved it on)")
+            return IndexSnapshot(directory, man, active)
+        except (IndexDamaged, ValueError, KeyError) as exc:
+            if attempt:
+                raise IndexUnavailable(f"stage-1 index damaged ({exc})") from None
+    raise AssertionError("unreachable")
