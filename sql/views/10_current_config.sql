@@ -1,4 +1,5 @@
--- current_config: the configuration of the most recent onboarding run (the latest row of runs_all).
+-- current_config: the configuration of the latest successful onboarding run (the latest row of runs_all
+-- with status 'ok'; interrupted, failed and refused runs never become current, as for queries).
 -- "Current" everywhere else means "what this config writes": its fingerprints, models and view count.
 CREATE OR REPLACE VIEW current_config AS
 SELECT
@@ -15,10 +16,11 @@ SELECT
     ) AS expected_views,
     CAST(config_json AS JSON) AS config
 FROM runs_all
+WHERE status = 'ok'
 ORDER BY run_id DESC
 LIMIT 1;
 
-COMMENT ON VIEW current_config IS 'the configuration of the most recent onboarding run';
+COMMENT ON VIEW current_config IS 'the configuration of the latest successful onboarding run';
 COMMENT ON COLUMN current_config.run_id IS 'the run whose configuration is current';
 COMMENT ON COLUMN current_config.profile IS 'model profile of that run (offline | paper)';
 COMMENT ON COLUMN current_config.engine IS 'executor of that run (local | ray)';
