@@ -14,6 +14,15 @@ SELECT
                 * json_array_length(json_extract(config_json, '$.render.elevations_deg'))
         END AS INTEGER
     ) AS expected_views,
+    CAST(
+        CASE
+            WHEN json_extract_string(config_json, '$.render.cameras') = 'cap3d' THEN 8
+            ELSE CAST(json_extract(config_json, '$.render.views_per_ring') AS INTEGER)
+                * json_array_length(json_extract(config_json, '$.render.elevations_deg'))
+        END
+        + CASE WHEN coalesce(CAST(json_extract(config_json, '$.render.extra_bg_view') AS BOOLEAN), false) THEN 1 ELSE 0 END
+        AS INTEGER
+    ) AS expected_rendered_views,
     CAST(config_json AS JSON) AS config
 FROM runs_all
 WHERE status = 'ok'
@@ -25,5 +34,6 @@ COMMENT ON COLUMN current_config.run_id IS 'the run whose configuration is curre
 COMMENT ON COLUMN current_config.profile IS 'model profile of that run (offline | paper)';
 COMMENT ON COLUMN current_config.engine IS 'executor of that run (local | ray)';
 COMMENT ON COLUMN current_config.cameras IS 'camera layout (oscar | cap3d)';
-COMMENT ON COLUMN current_config.expected_views IS 'views every mesh should have under this config';
+COMMENT ON COLUMN current_config.expected_views IS 'captioned views every mesh should have under this config (the camera layout)';
+COMMENT ON COLUMN current_config.expected_rendered_views IS 'rendered views every mesh should have: the layout plus the extra background view (--extra-bg-view), which has image embeddings and local features but no caption';
 COMMENT ON COLUMN current_config.config IS 'the full configuration as JSON (models, render options, fingerprints)';

@@ -1,4 +1,4 @@
-"""Hand-made stores for tests and examples: a few rows per table, written through ``Store.commit``.
+"""Hand-made stores for the SQL tests: a few rows per table, written through ``Store.commit``.
 
 ``TinyStore`` keeps rows per run and commits each run in run-id order, so tests can state exactly which
 rows exist, which are superseded and which fingerprints are current::
