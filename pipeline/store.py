@@ -192,10 +192,10 @@ class Store:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
+            holder = lock_holder(fd)
             os.close(fd)
-            raise StoreError(
-                f"{self.root} is locked by another writer (onboarding or compact running?)"
-            ) from None
+            raise StoreError(f"{self.root} is locked by another writer: {holder}") from None
+        write_lock_holder(fd)
         self._lock_fd = fd
 
     def refresh(self, dataset: str | None = None) -> None:
@@ -471,6 +471,33 @@ def version_at(dt, run_id: str | None, at: datetime) -> int | None:
         if (h["oscar_run_id"] <= run_id if run_id and h.get("oscar_run_id") else h["timestamp"] <= ms)
     ]
     return max(ok) if ok else None
+
+
+def write_lock_holder(fd: int) -> None:
+    """Write who holds the lock (pid, host, command, since) into the lock file, for the next writer's error."""
+    import socket
+    import sys
+
+    argv = getattr(sys, "orig_argv", sys.argv)
+    command = " ".join(" ".join([Path(argv[0]).name, *argv[1:]]).split())[:200] if argv else "?"
+    info = {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "command": command,
+        "since": utcnow().isoformat(),
+    }
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps(info).encode(), 0)
+
+
+def lock_holder(fd: int) -> str:
+    """Who holds the lock, as the holder wrote it (:func:`write_lock_holder`), in words."""
+    try:
+        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        since = datetime.fromisoformat(info["since"]).strftime("%Y-%m-%d %H:%M:%S UTC")
+        return f"pid {info['pid']} on {info['host']} ({info['command']}), since {since}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "a process that did not say who it is (onboarding or compact running?)"
 
 
 def store_version(root: str | os.PathLike) -> tuple | None:

@@ -84,6 +84,15 @@ def _variables(items: list[str]) -> dict[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from pipeline.cli_common import reader_gone
+
+    try:
+        return _main(argv)
+    except BrokenPipeError:  # `... | head` closed the pipe: the reader has what it wanted
+        return reader_gone()
+
+
+def _main(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from pipeline.cli_common import fail
     from pipeline.db import RemoteStore, audit_names, open_store
@@ -153,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
             names = audit_names() if "all" in args.audit else args.audit
             found = run_audits(con, names, printer)
             return 1 if args.check and any(found.values()) else 0
+    except BrokenPipeError:
+        raise
     except (duckdb.Error, ValueError, OSError) as exc:
         return fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, 1)
 
