@@ -192,3 +192,32 @@ def test_render_workers_stop_quietly(tmp_path, library, full_cli, signum, group)
     assert last.startswith(f"error: interrupted by {signal.Signals(signum).name}: kept "), err
     subprocess.run(_cli(library, store), check=True, env=env, capture_output=True, timeout=600)
     assert_same_tables(store, full_cli)
+
+
+def test_ray_engine_keeps_the_batches_that_arrived(tmp_path, library, full, monkeypatch):
+    """The Ray engine commits each batch with every step done: a signal keeps what arrived, the driver
+    stops waiting for the rest, and the re-run (here by the local engine) does only that."""
+    ray = pytest.importorskip("ray")
+    started = not ray.is_initialized()
+    if started:
+        ray.init(num_cpus=2, include_dashboard=False, logging_level="warning", log_to_driver=False)
+    real = Store.commit
+    state = {"sent": False}
+
+    def commit(self, tables, run_id):
+        if "views" in tables and not state["sent"]:
+            state["sent"] = True
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(self, tables, run_id)
+
+    monkeypatch.setattr(Store, "commit", commit)
+    try:
+        with pytest.raises(RunInterrupted) as exc:
+            onboard(library, tmp_path / "s", None, engine="ray", **{**CFG, "batch_size": 1})
+    finally:
+        if started:
+            ray.shutdown()
+    assert exc.value.complete >= 1 and exc.value.kept == exc.value.complete and exc.value.left >= 1
+    assert [r["status"] for r in Store.open(tmp_path / "s").read("runs").to_pylist()] == ["interrupted"]
+    monkeypatch.undo()
+    _resume_equals_full(library, tmp_path / "s", None, full)

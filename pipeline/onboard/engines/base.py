@@ -101,6 +101,10 @@ def progress_bars(progress: bool, run: RunSpec, plan: Plan) -> dict:
 class Engine:
     """Plans a run and commits its batches; subclasses compute the steps' outputs (:meth:`run`)."""
 
+    #: whether :meth:`commit_batch` leaves a batch's remaining steps to the next run on a stop request
+    #: (True where the steps are computed there, as in the local engine)
+    STOP_BETWEEN_STEPS = True
+
     def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
         self.store, self.run_spec, self.cfg, self.run_id, self.progress = (
             store,
@@ -275,7 +279,7 @@ class Engine:
             step_ids = [m for m in ids if m in plan.todo[step.key] and m not in failed]
             if not step_ids:
                 continue
-            if self.stop.requested:  # keep what is finished: this batch's remaining steps wait for a re-run
+            if self.stop.requested and self.STOP_BETWEEN_STEPS:  # keep what is finished; the rest waits
                 stopped = True
                 break
             out = outputs(step, step_ids, lambda s=step, i=step_ids: self._input(s, batch, i))
