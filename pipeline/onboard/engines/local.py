@@ -39,9 +39,11 @@ def _prefetch(source: Iterator, maxsize: int, stop: StopFlag, halt: Callable[[],
                         continue
                 if ended.is_set():
                     return
-            q.put(("end", None))
+            if not ended.is_set():
+                q.put(("end", None))
         except BaseException as exc:  # re-raised in the consumer
-            q.put(("error", exc))
+            if not ended.is_set():
+                q.put(("error", exc))
 
     t = threading.Thread(target=pump, name="render-prefetch", daemon=True)
     t.start()
