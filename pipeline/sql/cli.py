@@ -66,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--as-of",
         metavar="VERSION|TIME",
         help="time travel: the store as it was right after version VERSION of its runs table (one "
-        "commit per onboarding run; `python -m pipeline.fsck STORE` lists them) or at an ISO time",
+        "commit per onboarding run; `python -m pipeline.fsck STORE --runs` lists them) or as the last run "
+        "recorded by an ISO time left it (a time before the first run is an error)",
     )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
