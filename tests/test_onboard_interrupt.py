@@ -221,3 +221,25 @@ def test_ray_engine_keeps_the_batches_that_arrived(tmp_path, library, full, monk
     assert [r["status"] for r in Store.open(tmp_path / "s").read("runs").to_pylist()] == ["interrupted"]
     monkeypatch.undo()
     _resume_equals_full(library, tmp_path / "s", None, full)
+
+
+def test_a_signal_after_the_last_batch_leaves_a_finished_run(
+    tmp_path, library, full, offline_models, monkeypatch
+):
+    """Nothing was left when the signal came (it landed in the last batch's commit): the run is ok."""
+    real = Store.commit
+    state = {"views": 0}
+
+    def commit(self, tables, run_id):
+        if "views" in tables:
+            state["views"] += 1
+            if state["views"] == 2:  # the second and last batch of 2 meshes
+                os.kill(os.getpid(), signal.SIGTERM)
+        return real(self, tables, run_id)
+
+    monkeypatch.setattr(Store, "commit", commit)
+    summary = onboard(library, tmp_path / "s", offline_models, **CFG)
+    assert summary.status == "ok" and summary.rendered == 4
+    assert [r["status"] for r in Store.open(tmp_path / "s").read("runs").to_pylist()] == ["ok"]
+    monkeypatch.undo()
+    assert_same_tables(tmp_path / "s", full)

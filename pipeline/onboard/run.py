@@ -54,7 +54,8 @@ def _run(
         engine.stop = flag
         flag.check()
         summary = engine.run(library)
-        flag.check()  # an engine that ended its loops early on a stop request did not finish the run
+        if flag.requested and engine.left():  # it ended early on the stop request: not finished
+            raise StopRequested(flag.signum)
         summary.status = "ok"
     except RemovalGuardError as exc:
         summary = _status(exc.summary or summary, "refused", engine)

@@ -157,11 +157,15 @@ class Engine:
         self.planned = set().union(*plan.todo.values())
         return plan, summary
 
+    def left(self) -> int:
+        """Meshes this run had work for that it has not committed with all their steps."""
+        return len(self.planned - (self.kept_complete - self.kept_partial))
+
     def interrupted(self, signum: int) -> RunInterrupted:
         """The error of a run stopped by ``signum``, with how many meshes it kept and left."""
         complete = self.kept_complete - self.kept_partial
         kept = complete | self.kept_partial
-        return RunInterrupted(signum, len(kept), len(complete), len(self.planned - complete), self.summary)
+        return RunInterrupted(signum, len(kept), len(complete), self.left(), self.summary)
 
     def finish(self, summary: RunSummary, t0: float) -> RunSummary:
         summary.captioned = self.done.get("caption", 0)

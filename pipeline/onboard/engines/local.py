@@ -103,7 +103,6 @@ class LocalEngine(Engine):
                 with Timer(self.seconds, "load_views"):
                     views = self.stored_rows(self.run_spec.source, chunk)
                 summary.failed += self.commit_batch(plan, views, [], bars, self._outputs)
-            self.stop.check()
         finally:
             batches.close()  # stops the render workers now, whatever ended the run
             for b in bars.values():
