@@ -133,12 +133,6 @@ class Engine:
             plan = make_plan(self.store, library, self.run_spec)
         summary.n_files = len(plan.files) + len(plan.discover_errors)
         summary.hashed = plan.n_hashed
-        summary.skipped = plan.skipped
-        summary.failed_before = plan.failed_before
-        summary.removed = len(plan.removed_rows)
-        summary.added = sum(len(v) for v in plan.new_paths.values())
-        summary.restored = plan.restored
-        summary.failed += len(plan.discover_errors)
         guard = check_removals(
             plan.n_active_before,
             plan.n_vanished,
@@ -147,8 +141,14 @@ class Engine:
             self.cfg.allow_removal,
         )
         summary.removal_guard, summary.guard_line = guard.describe(), guard.line()
-        if guard.tripped:
+        if guard.tripped:  # nothing is committed: the run's record counts no change
             raise RemovalGuardError(guard, plan.library_root, summary)
+        summary.skipped = plan.skipped
+        summary.failed_before = plan.failed_before
+        summary.removed = len(plan.removed_rows)
+        summary.added = sum(len(v) for v in plan.new_paths.values())
+        summary.restored = plan.restored
+        summary.failed += len(plan.discover_errors)
         if summary.n_files == 0:
             summary.warnings.append(
                 f"library {plan.library_root} holds no mesh file (.obj/.ply/.glb/.gltf/.stl/.off): nothing to do"
