@@ -121,6 +121,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.duckdb_cli:
         return _exec_duckdb_cli(store)
+    import atexit
+
+    from pipeline.snapshot import pin_and_lease
+
+    lease = pin_and_lease(store, "sql")  # compaction spares what this session reads, however long it lasts
+    if lease is not None:
+        atexit.register(lease.release)
 
     import duckdb
 
