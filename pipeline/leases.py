@@ -52,7 +52,7 @@ class LeaseInfo:
         return (time.time() if now is None else now) > self.heartbeat + self.ttl
 
     def describe(self) -> str:
-        return f"{self.id} ({self.kind}, {self.holder})"
+        return f"{self.kind} {self.id} ({self.holder})"
 
 
 @dataclass(eq=False)
@@ -71,8 +71,9 @@ class Lease:
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
-        self.id = self.id or f"{self.kind}-{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        self.id = self.id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self._lock = threading.Lock()
+        self.renewed = 0.0  # time.monotonic() of the last write
 
     @property
     def path(self) -> Path:
@@ -85,6 +86,12 @@ class Lease:
         self.renew()
         KEEPER.add(self)
 
+    def relabel(self, kind: str) -> None:
+        """Say what holds the lease (``compact`` prints it): e.g. ``service`` for the query service's."""
+        self.kind = kind
+        if self.held:
+            self.renew()
+
     def versions(self) -> dict[str, list[int]]:
         out: dict[str, set[int]] = {}
         for snap in self.held:
@@ -94,6 +101,7 @@ class Lease:
 
     def renew(self) -> None:
         """Write the lease with a fresh heartbeat (atomic: a reader of the file sees the old or the new)."""
+        self.renewed = time.monotonic()
         if not self.writable:
             return
         body = {
@@ -144,6 +152,7 @@ class _Keeper:
             if self._thread is None or not self._thread.is_alive():
                 self._thread = threading.Thread(target=self._run, name="oscar-lease-keeper", daemon=True)
                 self._thread.start()
+        self._wake.set()  # its ttl may be shorter than the others'
 
     def discard(self, lease: Lease) -> None:
         with self._lock:
@@ -153,18 +162,17 @@ class _Keeper:
         while True:
             with self._lock:
                 leases = list(self._leases)
-            if not leases:
-                with self._lock:
-                    if not self._leases:
-                        self._thread = None
-                        return
-                continue
-            period = min(lease.ttl for lease in leases) / 4
-            self._wake.wait(max(period, 0.05))
+                if not leases:
+                    self._thread = None
+                    return
+            now = time.monotonic()
             for lease in leases:
-                if lease in self._leases:
+                if now >= lease.renewed + lease.ttl / 4 and lease in self._leases:
                     lease.renew()
-            del leases
+            wait = min(lease.renewed + lease.ttl / 4 for lease in leases) - time.monotonic()
+            del leases  # no strong reference while waiting: a dropped Retriever's lease just expires
+            self._wake.wait(max(wait, 0.02))
+            self._wake.clear()
 
 
 KEEPER = _Keeper()

@@ -37,6 +37,8 @@ class Snapshot:
 
     def __init__(self, retriever) -> None:
         retriever.recover = False  # the service reloads and retries itself, without blocking other requests
+        if retriever.lease is not None:
+            retriever.lease.relabel("service")
         self.retriever = retriever
         self.version = retriever.version
         self.opened_at = time.time()
