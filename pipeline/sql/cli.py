@@ -121,13 +121,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.duckdb_cli:
         return _exec_duckdb_cli(store)
-    import atexit
-
-    from pipeline.snapshot import pin_and_lease
-
-    lease = pin_and_lease(store, "sql")  # compaction spares what this session reads, however long it lasts
-    if lease is not None:
-        atexit.register(lease.release)
 
     import duckdb
 
@@ -140,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return fail(str(exc))
     try:
+        _hold_lease(store)
         con = connect(store)
     except StoreError as exc:
         return fail(str(exc))
@@ -190,3 +184,15 @@ def _exec_duckdb_cli(store) -> int:
         fh.write(init_script(store))
     os.execv(binary, [binary, "-init", path])
     return 0  # not reached
+
+
+def _hold_lease(store) -> None:
+    """Pin a local store to a consistent snapshot leased until this process ends: compaction spares what
+    the session reads, however long it lasts (:mod:`pipeline.leases`)."""
+    import atexit
+
+    from pipeline.snapshot import pin_and_lease
+
+    lease = pin_and_lease(store, "sql")
+    if lease is not None:
+        atexit.register(lease.release)
