@@ -18,6 +18,7 @@ each heartbeat is one PUT of a small object, atomic and read-after-write consist
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import os
@@ -145,10 +146,14 @@ class _Keeper:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._wake = threading.Event()
+        self._exit_hook = False
 
     def add(self, lease: Lease) -> None:
         with self._lock:
             self._leases.add(lease)
+            if not self._exit_hook:
+                atexit.register(self.release_all)  # a process that ends unclosed leaves no lease behind
+                self._exit_hook = True
             if self._thread is None or not self._thread.is_alive():
                 self._thread = threading.Thread(target=self._run, name="oscar-lease-keeper", daemon=True)
                 self._thread.start()
@@ -157,6 +162,12 @@ class _Keeper:
     def discard(self, lease: Lease) -> None:
         with self._lock:
             self._leases.discard(lease)
+
+    def release_all(self) -> None:
+        with self._lock:
+            leases = list(self._leases)
+        for lease in leases:
+            lease.release()
 
     def _run(self) -> None:
         while True:

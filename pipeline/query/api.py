@@ -14,7 +14,7 @@ lock, and the adapters and stage 2 only read shared state. It answers from the s
 service does when :func:`pipeline.query.library.store_version` changes). The state is one consistent
 snapshot of every table (:mod:`pipeline.snapshot`), leased in the store while open (:mod:`pipeline.leases`)
 so that ``compact`` spares its files; a query that still meets a vanished file reloads the newest snapshot
-in place and retries once (:mod:`pipeline.query.recover`; ``recover=False`` turns that off).
+in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = False`` turns that off).
 """
 
 from __future__ import annotations
