@@ -122,8 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         "--retention-hours",
         type=float_range(0.0),
         default=DEFAULT_RETENTION_HOURS,
-        help="vacuum files removed longer ago than this (default: %(default)s = 7 days); "
-        "readers that opened the store earlier than this may fail afterwards",
+        help="vacuum files removed longer ago than this (default: %(default)s = 7 days), except files "
+        "that live reader leases still read (services, open Retrievers, sql sessions)",
     )
     p.add_argument("--no-vacuum", action="store_true", help="compact only; delete no files")
     p.add_argument(

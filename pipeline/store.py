@@ -12,7 +12,9 @@ Every commit is one Delta transaction on one table. :meth:`Store.commit` writes 
 :data:`TABLE_ORDER` (upstream first, ``runs`` last); rows are keyed by (``mesh_id``, stage fingerprint)
 and the latest ``run_id`` per key wins, so a writer killed between two tables' commits leaves only work
 the next run redoes (or rows that readers dedupe). A reader pins each table's version when it first
-touches it; compaction never deletes the files of a pinned snapshot before the vacuum retention period.
+touches it, or all at once (:meth:`Store.pin`, :mod:`pipeline.snapshot`); compaction never deletes the
+files of a pinned snapshot before the vacuum retention period, nor while a reader lease holds it
+(:mod:`pipeline.leases`).
 One writer at a time (``_lock``); a second one gets a clear error.
 """
 
