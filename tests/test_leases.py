@@ -140,3 +140,30 @@ def test_retriever_raises_store_unavailable_when_the_newest_snapshot_fails_too(s
         r.candidate_views(["id-extra"])
     assert "\n" not in str(exc.value) and "is missing" in str(exc.value)
     r.close()
+
+
+def test_vanished_file_is_recognised_whichever_layer_reports_it():
+    from pipeline.query.errors import QueryError
+    from pipeline.query.recover import vanished_file
+    from pipeline.store import corrupt
+
+    gone = corrupt(
+        "/s", "store file /s/view_features/part-0.parquet is missing (table view_features, version 1)"
+    )
+    assert vanished_file(gone)
+    assert vanished_file(FileNotFoundError(2, "No such file or directory"))
+    assert vanished_file(
+        OSError("Failed to open local file '/s/views/p.parquet'. Detail: [errno 2] No such file or directory")
+    )
+    assert vanished_file(RuntimeError("Generic delta error: Object at location /s/views/p.parquet not found"))
+    wrapped = RuntimeError("scan failed")
+    wrapped.__cause__ = FileNotFoundError("p.parquet")
+    assert vanished_file(wrapped)
+    assert not vanished_file(QueryError("no such file or directory: photo.jpg"))  # the user's input
+    assert not vanished_file(ValueError("vector widths do not match"))
+    assert vanished_file(gone, "/s") and not vanished_file(
+        FileNotFoundError(2, "gone", "/models/m.onnx"), "/s"
+    )
+    assert not vanished_file(
+        corrupt("/s", "store file /s/views/p.parquet is damaged: 10 bytes, its Delta log says 20")
+    )

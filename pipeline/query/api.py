@@ -108,7 +108,7 @@ class Retriever:
         try:
             return cls._open(**args)
         except Exception as exc:
-            if not vanished_file(exc):
+            if not vanished_file(exc, store_path):
                 raise
         return cls._open(**args)  # compaction removed files while opening: once more, on its result
 

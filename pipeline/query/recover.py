@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 import re
 import threading
 from contextlib import contextmanager
+from pathlib import Path
 
 from pipeline.query.errors import QueryError, StoreUnavailable
 
@@ -29,14 +31,19 @@ _VANISHED = re.compile(
 KEPT = frozenset({"_models", "_model_lock", "load_seconds", "_gate", "generation", "recover", "_open_args"})
 
 
-def vanished_file(exc: BaseException | None) -> bool:
-    """Whether ``exc`` (or its cause) says that a data file of the store is gone."""
+def vanished_file(exc: BaseException | None, root: str | os.PathLike | None = None) -> bool:
+    """Whether ``exc`` (or its cause) says that a data file is gone; with ``root``, a file of the store
+    there (a missing model file or photo is not a store that moved on)."""
+    roots = () if root is None else {str(root), str(Path(root).resolve())}
     seen: set[int] = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
         if isinstance(exc, QueryError):
             return False
-        if isinstance(exc, FileNotFoundError) or _VANISHED.search(str(exc)):
+        text = f"{exc} {getattr(exc, 'filename', None) or ''}"
+        if (isinstance(exc, FileNotFoundError) or _VANISHED.search(text)) and (
+            not roots or any(r in text for r in roots)
+        ):
             return True
         exc = exc.__cause__ or exc.__context__
     return False
@@ -121,7 +128,7 @@ def recovering(method):
             with self._gate.reading():
                 return method(self, *args, **kwargs)
         except Exception as exc:
-            if not self.recover or not vanished_file(exc):
+            if not self.recover or not vanished_file(exc, self.store.root):
                 raise
             first = one_line(exc)
         reload_in_place(self, generation)
@@ -129,7 +136,7 @@ def recovering(method):
             with self._gate.reading():
                 return method(self, *args, **kwargs)
         except Exception as exc:
-            if vanished_file(exc):
+            if vanished_file(exc, self.store.root):
                 raise StoreUnavailable(
                     f"the store changed under this query and its newest snapshot failed too: {one_line(exc)} "
                     f"(first: {first})"

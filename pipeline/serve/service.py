@@ -223,7 +223,7 @@ class QueryService:
         try:
             return fn(snap.retriever, *args)
         except Exception as exc:
-            if not vanished_file(exc):
+            if not vanished_file(exc, snap.retriever.store.root):
                 raise
             reason = one_line(exc)
         finally:
@@ -235,7 +235,7 @@ class QueryService:
         try:
             return fn(snap.retriever, *args)
         except Exception as exc:
-            if not vanished_file(exc):
+            if not vanished_file(exc, snap.retriever.store.root):
                 raise
             raise StoreUnavailable(
                 f"the store changed under this query and its newest snapshot failed too: {one_line(exc)}"
