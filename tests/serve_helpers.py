@@ -81,7 +81,7 @@ def add_fake_mesh(
                 "detector_id": "none",
                 "n_keypoints": 0,
                 "keypoints": [],
-                "descriptor_dim": 32,
+                "descriptor_dim": 128,
                 "descriptors": b"",
                 "fingerprint": "fp-features",
                 "source_fingerprint": fps["render"],
@@ -133,6 +133,50 @@ def remove_fake_mesh(store_path: str | Path, mesh_id: str) -> None:
         store.commit(
             {
                 "meshes": pa.Table.from_pylist(rows, schema=schemas.MESHES),
+                "runs": pa.Table.from_pylist([run], schema=schemas.RUNS),
+            },
+            run_id,
+        )
+
+
+def enable_features(store_path: str | Path) -> None:
+    """Commit a run that records local features (SIFT config) and empty ``view_features`` rows for every
+    mesh: queries then verify, reading ``view_features`` lazily on their first verification."""
+    from dataclasses import asdict
+
+    from pipeline import schemas
+    from pipeline.localfeat import FeatureConfig
+    from pipeline.store import Store, latest_rows, new_run_id
+
+    run_id = new_run_id()
+    with Store.open(store_path, writable=True) as store:
+        runs = [r for r in store.read("runs").to_pylist() if r["status"] == "ok"]
+        last = max(runs, key=lambda r: r["run_id"])
+        cfg = json.loads(last["config_json"])
+        cfg["features"] = asdict(FeatureConfig())
+        cfg["fingerprints"]["features"] = "fp-features"
+        views = latest_rows(
+            store.read("views", columns=["mesh_id", "view_index", "run_id"]), ["mesh_id", "view_index"]
+        )
+        rows = [
+            {
+                "mesh_id": v["mesh_id"],
+                "view_index": v["view_index"],
+                "detector_id": "opencv:sift-256@384",
+                "n_keypoints": 0,
+                "keypoints": [],
+                "descriptor_dim": 128,
+                "descriptors": b"",
+                "fingerprint": "fp-features",
+                "source_fingerprint": cfg["fingerprints"]["render"],
+                "run_id": run_id,
+            }
+            for v in views.to_pylist()
+        ]
+        run = {**last, "run_id": run_id, "config_json": json.dumps(cfg)}
+        store.commit(
+            {
+                "view_features": pa.Table.from_pylist(rows, schema=schemas.VIEW_FEATURES),
                 "runs": pa.Table.from_pylist([run], schema=schemas.RUNS),
             },
             run_id,

@@ -11,7 +11,7 @@ from collections import Counter
 
 import pytest
 from query_helpers import fake_models, make_fake_store
-from serve_helpers import add_fake_mesh, remove_fake_mesh
+from serve_helpers import add_fake_mesh, enable_features, remove_fake_mesh
 from test_leases import needed_files
 from test_serve import png, red_can
 
@@ -212,3 +212,23 @@ def test_soak_runs_removal_and_compaction_while_clients_query(store):
     assert "green_can" not in clients.names and {"red_can", "new_0"} <= clients.names
     assert any("kept for live readers: service" in out for out in compactions), compactions
     assert service.counts["reloads"] >= 4
+
+
+def test_a_query_whose_view_features_vanished_is_answered(store):
+    """The failure of issue 22: verification reads ``view_features`` after compaction deleted its files."""
+    enable_features(store)
+    add_fake_mesh(store, "more", (20, 200, 200), 40, 40, features=True)  # view_features: 3 files to merge
+    service = make_service(store, lease=False)
+    assert service.snapshot.retriever.verifier.available
+    compact0(store)
+    img, _, box = red_can()
+    with TestClient(create_app(service)) as c:
+        r = c.post(
+            "/query",
+            files={"image": ("p.png", png(img), "image/png")},
+            data={"prompt": "the red can", "box": box},
+        )
+        assert r.status_code == 200, r.text
+        assert r.json()["candidates"][0]["name"] == "red_can"
+        assert c.get("/stats").json()["retries"] == 1
+    service.close()
