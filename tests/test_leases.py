@@ -167,3 +167,14 @@ def test_vanished_file_is_recognised_whichever_layer_reports_it():
     assert not vanished_file(
         corrupt("/s", "store file /s/views/p.parquet is damaged: 10 bytes, its Delta log says 20")
     )
+
+
+def test_a_lost_file_of_the_newest_snapshot_is_damage_not_a_reload(store):
+    r = open_retriever(store)
+    for p in needed_files(store, r.versions):
+        if "/views/" in str(p):
+            p.unlink()  # nothing committed since: no newer snapshot can help
+    with pytest.raises(StoreUnavailable, match="no newer snapshot") as exc:
+        r.candidate_views(["id-extra"])
+    assert "pipeline.fsck" in str(exc.value) and r.generation == 0
+    r.close()

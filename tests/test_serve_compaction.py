@@ -79,8 +79,11 @@ def test_a_vanished_file_reloads_and_retries_once(store):
     service.close()
 
 
-def test_503_with_retry_after_when_the_newest_snapshot_fails_too(store):
+def test_503_with_retry_after_when_the_newest_snapshot_fails_too(store, monkeypatch):
     service = make_service(store, lease=False)
+    reopens = []
+    reopened = Retriever.reopened
+    monkeypatch.setattr(Retriever, "reopened", lambda self, **kw: reopens.append(1) or reopened(self, **kw))
     compact0(store)
     for p in needed_files(store, consistent_versions(store)):
         if "/views/" in str(p):
@@ -90,6 +93,9 @@ def test_503_with_retry_after_when_the_newest_snapshot_fails_too(store):
         assert r.status_code == 503 and r.headers["Retry-After"] == "2"
         msg = r.json()["error"]
         assert "\n" not in msg and "store changed" in msg and "is missing" in msg
+        again = c.get("/meshes/id-extra")  # the same newest snapshot is not reopened for each request
+        assert again.status_code == 503 and again.json()["error"] == msg and len(reopens) == 1
+        assert c.get("/stats").json()["last_reload_error"]
         img, _, box = red_can()  # queries that need no lost file still answer from the old snapshot
         q = c.post(
             "/query",

@@ -56,7 +56,7 @@ class Retriever:
         # tables.con (candidate_views, mesh lookups) runs one statement at a time
         self._db_lock = threading.Lock()
         self.version = None  # store version this state was read at (set by open)
-        self.versions: dict[str, int] = dict(getattr(store, "_pins", None) or {})  # the pinned snapshot
+        self.versions: dict[str, int] = store.versions()  # the snapshot read (pinned at open)
         self.lease = None  # this reader's lease in the store (set by open)
         self.recover = True  # reload and retry once when a query meets a vanished file
         self.generation = 0  # bumped by each reload in place

@@ -49,9 +49,21 @@ def vanished_file(exc: BaseException | None, root: str | os.PathLike | None = No
     return False
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+
+
 def one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
+    """``exc`` as one plain line (delta-rs colours its messages)."""
+    text = " ".join(_ANSI.sub("", str(exc)).split())
     return text or type(exc).__name__
+
+
+def damaged(root, reason: str) -> StoreUnavailable:
+    """A file of the newest snapshot is gone: not a store that moved on, so no reload can help."""
+    return StoreUnavailable(
+        f"the store has no newer snapshot than the one that failed ({reason}); "
+        f"if this persists, run `python -m pipeline.fsck {root}`"
+    )
 
 
 class Gate:
@@ -92,12 +104,26 @@ class Gate:
                 self._cond.notify_all()
 
 
-def reload_in_place(retriever, generation: int) -> None:
+def newest_snapshot(root) -> dict[str, int]:
+    """:func:`pipeline.snapshot.consistent_versions`, or StoreUnavailable when the log cannot be read."""
+    from pipeline.snapshot import consistent_versions
+
+    try:
+        return consistent_versions(root)
+    except Exception as exc:  # noqa: BLE001 - a damaged or half-copied log: nothing to reload now
+        raise StoreUnavailable(
+            f"the store changed and its newest snapshot cannot be read: {one_line(exc)}"
+        ) from None
+
+
+def reload_in_place(retriever, generation: int, reason: str) -> None:
     """Move ``retriever`` to the store's newest committed snapshot, unless another thread already did
     since ``generation``; the old snapshot is closed (its lease released). Raises StoreUnavailable."""
     with retriever._gate.writing():
         if retriever.generation != generation:
             return
+        if newest_snapshot(retriever.store.root) == retriever.versions:  # damage, not compaction
+            raise damaged(retriever.store.root, reason)
         try:
             fresh = retriever.reopened()
         except Exception as exc:  # noqa: BLE001 - any failure to reopen leaves the store unusable now
@@ -131,7 +157,7 @@ def recovering(method):
             if not self.recover or not vanished_file(exc, self.store.root):
                 raise
             first = one_line(exc)
-        reload_in_place(self, generation)
+        reload_in_place(self, generation, first)
         try:
             with self._gate.reading():
                 return method(self, *args, **kwargs)

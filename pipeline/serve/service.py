@@ -103,6 +103,7 @@ class QueryService:
             "retries": 0,
         }
         self.last_reload_error: str | None = None
+        self._unopenable: tuple[dict, str] | None = None  # newest versions that failed to open, why
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
 
@@ -139,18 +140,24 @@ class QueryService:
         """Swap to the newest snapshot after ``failed`` met a vanished file (unless a concurrent request
         already did); raises StoreUnavailable when the newest snapshot cannot be opened."""
         from pipeline.query.errors import StoreUnavailable
+        from pipeline.query.recover import damaged, newest_snapshot, one_line
 
         with self._swap_lock:
             if self._snapshot is not failed:
                 return
+            newest = newest_snapshot(failed.retriever.store.root)
+            if newest == failed.retriever.versions:
+                raise damaged(failed.retriever.store.root, reason)
+            if self._unopenable is not None and self._unopenable[0] == newest:
+                raise StoreUnavailable(self._unopenable[1])  # tried already: no reopen per request
             log.warning("store file gone under version %s (%s): reloading", failed.version, reason)
             try:
                 self._swap(failed)
             except Exception as exc:  # noqa: BLE001 - keep serving the old snapshot; this request gets 503
                 self.last_reload_error = f"{type(exc).__name__}: {exc}"
-                raise StoreUnavailable(
-                    f"the store changed under this query and its newest snapshot cannot be opened: {exc}"
-                ) from None
+                message = f"the store changed under this query and its newest snapshot cannot be opened: {one_line(exc)}"
+                self._unopenable = (newest, message)
+                raise StoreUnavailable(message) from None
 
     def _swap(self, old: Snapshot) -> None:
         """Open the newest snapshot and publish it in place of ``old`` (caller holds ``_swap_lock``)."""
