@@ -74,7 +74,9 @@ class Lease:
         self.root = Path(self.root)
         self.id = self.id or f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self._lock = threading.Lock()
+        self._io_lock = threading.Lock()
         self.renewed = 0.0  # time.monotonic() of the last write
+        self.released = False
 
     @property
     def path(self) -> Path:
@@ -84,6 +86,7 @@ class Lease:
         """Lease exactly ``snapshots`` (dataset -> version maps; ``None`` versions are skipped) and renew."""
         with self._lock:
             self.held = [{d: int(v) for d, v in s.items() if v is not None} for s in snapshots]
+            self.released = False
         self.renew()
         KEEPER.add(self)
 
@@ -102,9 +105,12 @@ class Lease:
 
     def renew(self) -> None:
         """Write the lease with a fresh heartbeat (atomic: a reader of the file sees the old or the new)."""
-        self.renewed = time.monotonic()
-        if not self.writable:
-            return
+        with self._io_lock:  # the keeper and the owner never write at once, nor after release
+            self.renewed = time.monotonic()
+            if self.writable and not self.released:
+                self._write()
+
+    def _write(self) -> None:
         body = {
             "id": self.id,
             "holder": f"pid {os.getpid()} on {socket.gethostname()}",
@@ -130,12 +136,14 @@ class Lease:
     def release(self) -> None:
         """Remove the lease (compaction may delete this reader's files from now on)."""
         KEEPER.discard(self)
-        with self._lock:
-            self.held = []
-        try:
-            self.path.unlink(missing_ok=True)
-        except OSError:
-            pass  # read-only store: nothing was written
+        with self._io_lock:
+            self.released = True
+            with self._lock:
+                self.held = []
+            try:
+                self.path.unlink(missing_ok=True)
+            except OSError:
+                pass  # read-only store: nothing was written
 
 
 class _Keeper:
