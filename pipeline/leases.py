@@ -77,6 +77,7 @@ class Lease:
         self._io_lock = threading.Lock()
         self.renewed = 0.0  # time.monotonic() of the last write
         self.released = False
+        self.pid = os.getpid()
 
     @property
     def path(self) -> Path:
@@ -175,7 +176,8 @@ class _Keeper:
         with self._lock:
             leases = list(self._leases)
         for lease in leases:
-            lease.release()
+            if lease.pid == os.getpid():  # a forked child that exits leaves its parent's leases alone
+                lease.release()
 
     def _run(self) -> None:
         while True:
