@@ -141,6 +141,8 @@ class Lease:
             self.released = True
             with self._lock:
                 self.held = []
+            if self.pid != os.getpid():
+                return  # a forked copy: the lease is its parent's
             try:
                 self.path.unlink(missing_ok=True)
             except OSError:
@@ -176,8 +178,7 @@ class _Keeper:
         with self._lock:
             leases = list(self._leases)
         for lease in leases:
-            if lease.pid == os.getpid():  # a forked child that exits leaves its parent's leases alone
-                lease.release()
+            lease.release()  # in a forked child that exits, this leaves the parent's file alone
 
     def _run(self) -> None:
         while True:
