@@ -131,14 +131,20 @@ class Clients:
             i = 0
             while not self.stop.is_set():
                 i += 1
-                if i % 2:
-                    r = c.post(
-                        "/query",
-                        files={"image": ("p.png", self.photo, "image/png")},
-                        data={"prompt": "the red can", "box": self.box, "roi": "bbox", "top": "10"},
-                    )
-                else:
-                    r = c.get(f"/meshes/{self.mesh_id}")
+                try:
+                    if i % 2:
+                        r = c.post(
+                            "/query",
+                            files={"image": ("p.png", self.photo, "image/png")},
+                            data={"prompt": "the red can", "box": self.box, "roi": "bbox", "top": "10"},
+                        )
+                    else:
+                        r = c.get(f"/meshes/{self.mesh_id}")
+                except httpx.HTTPError as exc:  # a dropped connection is a failed answer too
+                    with self._lock:
+                        self.codes[0] += 1
+                        self.bad.append(f"transport: {type(exc).__name__}: {exc}")
+                    continue
                 self._check(r, i % 2 == 1)
 
     def _check(self, r, is_query: bool) -> None:
@@ -171,7 +177,7 @@ class Clients:
             t.join(timeout=30)
 
 
-def wait_for(pred, seconds: float = 15.0) -> bool:
+def wait_for(pred, seconds: float = 30.0) -> bool:
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         if pred():
