@@ -178,3 +178,25 @@ def test_a_lost_file_of_the_newest_snapshot_is_damage_not_a_reload(store):
         r.candidate_views(["id-extra"])
     assert "pipeline.fsck" in str(exc.value) and r.generation == 0
     r.close()
+
+
+def test_the_sql_shell_holds_a_lease_for_its_session(store, monkeypatch, capsys):
+    from pipeline.snapshot import pin_and_lease
+    from pipeline.sql import cli as sql_cli
+
+    seen = []
+    real = sql_cli._hold_lease
+
+    def spy(s, leases):
+        real(s, leases)
+        seen.append((read_leases(store), s.versions()))
+
+    monkeypatch.setattr(sql_cli, "_hold_lease", spy)
+    assert sql_cli.main([str(store), "-c", "SELECT count(*) AS n FROM meshes_all"]) == 0
+    ((leases, versions),) = seen
+    assert [lease.kind for lease in leases] == ["sql"] and leases[0].versions == {
+        d: [v] for d, v in versions.items()
+    }
+    assert read_leases(store) == []  # released when the session ended
+    with Store.open(store, as_of=0) as old:
+        assert pin_and_lease(old, "sql") is None  # time travel reads old versions, unleased
