@@ -11,7 +11,10 @@ over tau, fallback-k, prompt weight or mode reuse one embedding.
 A ``Retriever`` is thread-safe: stage 1 borrows a DuckDB connection per call, models are built once under a
 lock, and the adapters and stage 2 only read shared state. It answers from the store state it opened;
 :meth:`Retriever.reopened` gives one on the latest commits that shares the loaded models (what the HTTP
-service does when :func:`pipeline.query.library.store_version` changes).
+service does when :func:`pipeline.query.library.store_version` changes). The state is one consistent
+snapshot of every table (:mod:`pipeline.snapshot`), leased in the store while open (:mod:`pipeline.leases`)
+so that ``compact`` spares its files; a query that still meets a vanished file reloads the newest snapshot
+in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = False`` turns that off).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
+from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
@@ -52,6 +56,11 @@ class Retriever:
         # tables.con (candidate_views, mesh lookups) runs one statement at a time
         self._db_lock = threading.Lock()
         self.version = None  # store version this state was read at (set by open)
+        self.versions: dict[str, int] = store.versions()  # the snapshot read (pinned at open)
+        self.lease = None  # this reader's lease in the store (set by open)
+        self.recover = True  # reload and retry once when a query meets a vanished file
+        self.generation = 0  # bumped by each reload in place
+        self._gate = Gate()
         self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
@@ -87,6 +96,7 @@ class Retriever:
         threads: int | None = None,
         settings_changes: dict | None = None,
         preload: bool = True,
+        lease: bool = True,
     ) -> Retriever:
         """Open ``store_path`` for queries with ``profile`` ("auto": the profile the store was onboarded with).
 
@@ -94,13 +104,45 @@ class Retriever:
         :func:`pipeline.models.registry.create_model` from the profile (detector and segmenter on first use).
         ``settings`` / ``settings_changes`` replace / adjust the profile's query defaults
         (:mod:`pipeline.query.settings`); ``use_cache`` reads and writes ``STORE/_cache/query``;
-        ``preload=False`` defers every model to its first use.
+        ``preload=False`` defers every model to its first use; ``lease=False`` opens without a reader
+        lease (compaction then spares this reader's files only through its retention period).
         """
+        args = {k: v for k, v in locals().items() if k != "cls"}
+        try:
+            return cls._open(**args)
+        except Exception as exc:
+            if not vanished_file(exc, store_path):
+                raise
+        return cls._open(**args)  # compaction removed files while opening: once more, on its result
+
+    @classmethod
+    def _open(
+        cls,
+        store_path,
+        profile,
+        model_overrides,
+        device,
+        models,
+        *,
+        settings,
+        use_cache,
+        threads,
+        settings_changes,
+        preload,
+        lease,
+    ) -> Retriever:
+        from pipeline.leases import Lease
         from pipeline.profiles import PROFILES, get_profile
-        from pipeline.store import Store
+        from pipeline.snapshot import open_snapshot
 
         version = store_version(store_path)  # read first: a commit racing the open is seen next time
-        store = Store.open(store_path)
+        held = Lease(store_path, "retriever") if lease else None
+        try:
+            store = open_snapshot(store_path, held)
+        except BaseException:
+            if held is not None:
+                held.release()
+            raise
         try:
             onboarding = latest_onboarding(store)
             if profile in (None, "", "auto"):
@@ -117,6 +159,7 @@ class Retriever:
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
             r.version = version
+            r.lease = held
             r._open_args = {
                 "store_path": store_path,
                 "profile": prof.name,
@@ -125,12 +168,15 @@ class Retriever:
                 "settings": settings,
                 "use_cache": use_cache,
                 "threads": threads,
+                "lease": lease,
             }
             if preload:
                 r.load_models(r.required_roles())
             return r
         except BaseException:
             store.close()
+            if held is not None:
+                held.release()
             raise
 
     def __enter__(self) -> Retriever:
@@ -158,6 +204,8 @@ class Retriever:
         self.text_filter.close()
         self.tables.con.close()
         self.store.close()
+        if self.lease is not None:
+            self.lease.release()
 
     # ------------------------------------------------------------------ models
     def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
@@ -261,6 +309,7 @@ class Retriever:
             verify=verify,
         )
 
+    @recovering
     def query(
         self,
         image,
@@ -326,6 +375,7 @@ class Retriever:
             raise QueryError(f"no active mesh {mesh_id!r} in this store")
         return self.tables.meshes.slice(j, 1).to_pylist()[0]
 
+    @recovering
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
         """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
         from pipeline.db import load_sql
