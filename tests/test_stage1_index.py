@@ -276,3 +276,23 @@ def test_drift_past_the_bound_retrains(store_path):
         snap = snapshot(store)
         for q in queries(8):
             answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))
+
+
+def test_retriever_result_carries_the_fallback_note(store_path, monkeypatch):
+    from query_helpers import fake_models
+
+    import pipeline.index.sync as sync_mod
+    from pipeline.query.api import Retriever
+    from pipeline.query.results import QueryEmbedding
+
+    monkeypatch.setattr(sync_mod, "sync", lambda *a, **k: (_ for _ in ()).throw(OSError("read-only")))
+    kw = {"models": fake_models(), "use_cache": False, "preload": False}
+    with Retriever.open(
+        store_path, settings_changes={"stage1": "index", "prompt_weight": 0.0, "verify": False}, **kw
+    ) as r:
+        assert r.text_filter.engine == "exact"
+        emb = QueryEmbedding(queries(1)[0], unit(np.ones(4)).astype(np.float32))
+        for mode in ("two-stage", "text-only"):
+            out = r.rank(emb, mode=mode, threshold=0.5).to_dict()
+            assert out["notes"] and "missing" in out["notes"][0] and "exact path" in out["notes"][0]
+            assert out["candidates"]
