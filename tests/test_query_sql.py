@@ -263,7 +263,7 @@ def test_sliced_layout_keeps_the_inner_product(dim):
 
 @pytest.mark.parametrize("unit_", ["captions", "meshes"])
 def test_blas_kernel_matches_the_all_sql_reference(unit_):
-    """``run`` (BLAS scores + stage1_select.sql) gives the answer of ``run_sql`` (stage1_text_filter.sql)."""
+    """``run_blas`` (BLAS scores + stage1_select.sql) gives the answer of ``run`` (stage1_text_filter.sql)."""
     rng = np.random.default_rng(7)
     mesh = rng.permutation(np.repeat(np.arange(60), 5))  # rows in no particular order, like the cache
     vecs = unit(rng.standard_normal((len(mesh), 20)))
@@ -271,7 +271,7 @@ def test_blas_kernel_matches_the_all_sql_reference(unit_):
     for q in unit(rng.standard_normal((6, 20))):
         s = np.sort(vecs @ q)[::-1]
         for tau in (None, float(s[3] + s[4]) / 2, float(s[40] + s[41]) / 2, 1.5):
-            a, b = f.run(q, tau, 7, unit_), f.run_sql(q, tau, 7, unit_)
+            a, b = f.run_blas(q, tau, 7, unit_), f.run(q, tau, 7, unit_)
             assert a.mesh_idx.tolist() == b.mesh_idx.tolist() and a.used_fallback == b.used_fallback
             np.testing.assert_allclose(a.scores, b.scores, atol=1e-6)
     f.close()

@@ -1,4 +1,4 @@
-"""Stage 1, the text filter: BLAS scores every caption, DuckDB runs ``sql/stage1_select.sql`` over them.
+"""Stage 1, the text filter: DuckDB runs ``sql/stage1_text_filter.sql`` over the caption table.
 
 The table is registered on warm connections; each query binds its vector, tau and k as parameters, so no
 user text or path ever reaches SQL text. A DuckDB connection runs one statement at a time (and a cursor
@@ -11,11 +11,12 @@ Layout: every caption vector is cut into ``SLICES`` equal slices, stored as colu
 short chains instead of one long one let the CPU overlap them, which cuts stage 1's CPU time by about a
 third at 1M rows (docs/performance.md (Query)). The sum is the same inner product up to float rounding (~1e-7).
 
-:meth:`TextFilter.run` computes the inner products with NumPy (BLAS, one matrix-vector product over a
+:meth:`TextFilter.run_blas` computes the inner products with NumPy (BLAS, one matrix-vector product over a
 contiguous copy of the vectors made on first use), takes the max per model (one ``reduceat`` over rows grouped by model once), and lets
 ``sql/stage1_select.sql`` apply tau and the fallback: DuckDB's ``list_dot_product`` made the all-SQL
 version 3.1x the NumPy floor at 1M rows, this one is within 2x (docs/performance.md, "Stage-1 index").
-:meth:`TextFilter.run_sql` keeps the all-SQL statement (``sql/stage1_text_filter.sql``) as the reference.
+:meth:`TextFilter.run` (the default, what queries use) stays the all-SQL statement: ``run_blas`` changes
+scores at the 1e-7 level, which the golden rankings (tests/golden) would have to be re-recorded for.
 """
 
 from __future__ import annotations
@@ -175,7 +176,18 @@ class TextFilter:
     ) -> Stage1Result:
         """Models scoring >= ``threshold`` (best first); when none does (or ``threshold`` is ``None``) the
         fallback: the distinct models of the ``fallback_k`` best captions (``fallback_unit="captions"``, the
-        paper's) or the ``fallback_k`` best models (``"meshes"``)."""
+        paper's) or the ``fallback_k`` best models (``"meshes"``). All in SQL (``sql/stage1_text_filter.sql``)."""
+        q, params = self._check(query, threshold, fallback_k, fallback_unit)
+        t0 = time.perf_counter()
+        with self.connection() as con:
+            out = con.execute(self.sql, {**query_params(q, self.width), **params}).fetchnumpy()
+        return self._result(out, time.perf_counter() - t0)
+
+    def run_blas(
+        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
+    ) -> Stage1Result:
+        """:meth:`run` with the inner products computed by BLAS and only the selection in SQL
+        (``sql/stage1_select.sql``): the same answer, scores equal up to float rounding (~1e-7)."""
         q, params = self._check(query, threshold, fallback_k, fallback_unit)
         t0 = time.perf_counter()
         rows, (models, best) = self.scores(q)
@@ -216,16 +228,6 @@ class TextFilter:
             "fallback_unit": fallback_unit,
         }
         return q, params
-
-    def run_sql(
-        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
-    ) -> Stage1Result:
-        """:meth:`run` computed entirely in SQL (``sql/stage1_text_filter.sql``): the reference."""
-        q, params = self._check(query, threshold, fallback_k, fallback_unit)
-        t0 = time.perf_counter()
-        with self.connection() as con:
-            out = con.execute(self.sql, {**query_params(q, self.width), **params}).fetchnumpy()
-        return self._result(out, time.perf_counter() - t0)
 
     @staticmethod
     def _result(out: dict, seconds: float) -> Stage1Result:
