@@ -68,6 +68,7 @@ class Retriever:
         self._name = m.column("name").to_pylist()
         self._path = m.column("source_path").to_pylist()
         self._root = m.column("library_root").to_pylist()
+        self._init_acceptance()
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -252,6 +253,7 @@ class Retriever:
         fallback_unit: str | None = None,
         views: bool = False,
         verify: bool | None = None,
+        accept_threshold: float | None = None,
     ) -> QueryResult:
         """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps).
 
@@ -261,7 +263,10 @@ class Retriever:
         (raw view scores: verification re-ranks models, not views).
         ``verify`` (default: the settings') re-ranks the top candidates with local features when the
         embedding carries the ROI's keypoints; inlier counts are cached on ``emb``.
+        ``accept_threshold`` (default: the settings', else the calibration's) sets the open-set operating
+        point of ``result.accepted`` (:mod:`pipeline.query.accept`).
         """
+        self._check_accept_threshold(accept_threshold)
         if mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
         unit = self.settings.fallback_unit if fallback_unit is None else fallback_unit
@@ -280,7 +285,9 @@ class Retriever:
         timings: dict[str, float] = {}
         try:
             if mode == "image-only":
-                return self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
+                return self._rank_image_only(
+                    emb, top, tau, fallback_k, w, timings, unit, views, verify, accept_threshold
+                )
             text_only = mode == "text-only"
             s1 = self.text_filter.run(
                 stage1_vector(emb, w),
@@ -303,6 +310,8 @@ class Retriever:
             order = np.lexsort((s1.mesh_idx, -s1.scores, -s2.scores))
             order, fused, inl = self._verified(emb, s1.mesh_idx, s2.scores, order, verify, timings)
             decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
+        keys = s1.scores if mode == "text-only" else fused
+        verdict = self._judge(mode, order, keys, inl, s1.scores, used_fallback, accept_threshold)
         order = order[: int(top)]
         cands = [
             self._candidate(
@@ -313,6 +322,7 @@ class Retriever:
         result = QueryResult(
             cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
         )
+        result.verdict = verdict
         if views and mode == "text-only":
             result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
         elif views:
@@ -330,7 +340,7 @@ class Retriever:
         return ViewRanking(m[order], np.full(len(order), -1, np.int16), s[order])
 
     def _rank_image_only(
-        self, emb, top, tau, fallback_k, w, timings, unit, views=False, verify=None
+        self, emb, top, tau, fallback_k, w, timings, unit, views=False, verify=None, accept_threshold=None
     ) -> QueryResult:
         s2 = self.reranker.score(emb.image_space, None, per_view=views)
         timings["stage1_ms"] = 0.0
@@ -338,6 +348,7 @@ class Retriever:
         idx = np.arange(len(s2.scores))
         order = np.lexsort((idx, -s2.scores))
         order, fused, inl = self._verified(emb, idx, s2.scores, order, verify, timings)
+        verdict = self._judge("image-only", order, fused, inl, None, False, accept_threshold)
         order = order[: int(top)]
         cands = [
             self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j])
@@ -346,6 +357,7 @@ class Retriever:
         result = QueryResult(
             cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w, unit
         )
+        result.verdict = verdict
         if views:
             result.view_ranking = _view_ranking(idx, s2, None)
         return result
@@ -381,10 +393,12 @@ class Retriever:
         prompt_weight: float | None = None,
         fallback_unit: str | None = None,
         verify: bool | None = None,
+        accept_threshold: float | None = None,
     ) -> QueryResult:
         """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
         if mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        self._check_accept_threshold(accept_threshold)
         loaded = sum(self.load_seconds.values())
         t0 = time.perf_counter()
         roi = self.make_roi(image, prompt, box=box, mask=mask, roi_mode=roi_mode)
@@ -393,7 +407,17 @@ class Retriever:
         emb = self.embed(roi, prompt)
         t2 = time.perf_counter()
         load_emb = sum(self.load_seconds.values()) - loaded - load_roi
-        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight, fallback_unit, verify=verify)
+        result = self.rank(
+            emb,
+            mode,
+            threshold,
+            fallback_k,
+            top,
+            prompt_weight,
+            fallback_unit,
+            verify=verify,
+            accept_threshold=accept_threshold,
+        )
         t3 = time.perf_counter()
         result.timings = {
             "model_load_ms": (load_roi + load_emb) * 1000,
@@ -412,6 +436,31 @@ class Retriever:
         }
         result.roi = roi  # for --explain; not serialised
         return result
+
+    # ------------------------------------------------------------------ open-set acceptance
+    def _init_acceptance(self) -> None:
+        """The profile's acceptance calibration (pipeline.query.accept) and whether it fits this store."""
+        from pipeline.query.accept import CalibrationError, load_calibration
+
+        try:
+            self.calibration = load_calibration(self.profile.name, self.settings.accept_model)
+        except CalibrationError as exc:
+            raise QueryError(str(exc)) from None
+        models = self.tables.onboarding.models
+        self.calibration_mismatch = None if self.calibration is None else self.calibration.mismatch(models)
+
+    def _check_accept_threshold(self, value) -> None:
+        if value is not None and not 0.0 <= float(value) <= 1.0:
+            raise QueryError(f"accept threshold must be within [0, 1], got {value}")
+
+    def _judge(self, mode, order, keys, inliers, text, used_fallback, threshold):
+        """The open-set verdict of a ranking (before it is cut to ``top``)."""
+        from pipeline.query.accept import judge, ranking_features, variant_of
+
+        verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
+        feats = ranking_features(order, keys, inliers, text, used_fallback)
+        t = self.settings.accept_threshold if threshold is None else threshold
+        return judge(self.calibration, feats, variant_of(mode, verified), t, self.calibration_mismatch)
 
     # ------------------------------------------------------------------ store lookups
     @property

@@ -37,6 +37,8 @@ class QuerySettings:
     verify: bool = False  # local-feature verification of the top candidates (pipeline.query.verify)
     verify_top: int = 20  # candidates verified (by global score)
     verify_weight: float = 0.3  # weight of the inlier term in the fused score
+    accept_threshold: float | None = None  # open-set operating point (None: the calibration's default)
+    accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
