@@ -62,9 +62,11 @@ def collect(
     rois: tuple[str, ...] = ("mask", "box"),
     progress: bool = False,
     on_error: Callable[[str, str], None] | None = None,
+    embeddings: dict | None = None,
 ) -> list[Example]:
     """Answer every (query, ROI variant) once per ranking variant, against the full store and, for the
-    left-out objects, against ``reduced`` (the store without them)."""
+    left-out objects, against ``reduced`` (the store without them). ``embeddings`` (filled and reused,
+    keyed by query and ROI variant) spares re-embedding when only the ranking side changed."""
     from pipeline.evaluate.datasets import drop_mask
     from pipeline.evaluate.engine import Engine
     from pipeline.evaluate.sweep import relevance_for
@@ -81,12 +83,19 @@ def collect(
             bool(inst) and all(library.labels.get(m) in absent_labels for m in inst)
         )
         group = q.label or (sorted(q.expected)[0] if q.expected else q.query_id)
+        key = (src, q.query_id, roi, q.image, q.mask, q.box, q.prompt)
         try:
-            emb = engine.embed(q if roi == "mask" else drop_mask(q), "segm").embedding
+            emb = embeddings.get(key) if embeddings is not None else None
+            if emb is None:
+                emb = engine.embed(q if roi == "mask" else drop_mask(q), "segm").embedding
+                emb.inliers = {}
+                if embeddings is not None:
+                    embeddings[key] = emb
         except QueryError as exc:
             if on_error:
                 on_error(q.query_id, str(exc))
             continue
+        emb = dataclasses.replace(emb, inliers={})
         targets = [(retriever, emb, bool(inst))]
         if absent and reduced is not None:  # the inlier cache is keyed by the store's mesh_idx
             targets.append((reduced, dataclasses.replace(emb, inliers={}), False))

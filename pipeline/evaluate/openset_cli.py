@@ -63,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="also write the calibration into the package (pipeline/query/calibration/PROFILE.json), "
         "where queries read it by default",
     )
+    p.add_argument(
+        "--embeddings",
+        metavar="FILE.pkl",
+        help="keep the query embeddings here and reuse them on the next run of the same store and "
+        "models (a local cache: only ranking and fitting are redone)",
+    )
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -100,6 +106,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     from pipeline.evaluate.library import Library, read_store_meshes
     from pipeline.evaluate.openset import collect
     from pipeline.evaluate.openset_split import mesh_ids_with_labels, without_meshes
+    from pipeline.fingerprint import fingerprint
     from pipeline.query import Retriever
 
     rois = tuple(r.strip() for r in args.rois.split(",") if r.strip())
@@ -121,6 +128,9 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         args.store, profile=args.profile, model_overrides=model_overrides(args), device=args.device
     ) as full:
         reduced = without_meshes(full, drop)
+        cache_key = fingerprint({"version": full.version, "models": full.tables.onboarding.models,
+                                 "settings": repr(full.settings)})  # fmt: skip
+        embeddings = _load_embeddings(args.embeddings, cache_key)
         examples = collect(
             full,
             reduced,
@@ -130,7 +140,9 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
             rois,
             progress=not args.no_progress,
             on_error=lambda qid, msg: errors.append({"query_id": qid, "error": msg}),
+            embeddings=embeddings,
         )
+        _save_embeddings(args.embeddings, cache_key, embeddings)
         default = _default_variant(full)
         models = {k: v for k, v in full.tables.onboarding.models.items()}
         profile = full.profile.name
@@ -152,6 +164,30 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     print(_headline(summary))
     print(f"report: {out / 'report.md'}")
     return 0 if not errors else 1
+
+
+def _load_embeddings(path: str | None, key: str) -> dict:
+    """The embedding cache at ``path`` when it was written for ``key`` (else an empty one)."""
+    import pickle
+
+    if not path or not Path(path).is_file():
+        return {}
+    try:
+        with open(path, "rb") as f:
+            saved = pickle.load(f)  # noqa: S301 - a local cache this command wrote
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError):
+        return {}
+    return saved.get("items", {}) if isinstance(saved, dict) and saved.get("key") == key else {}
+
+
+def _save_embeddings(path: str | None, key: str, items: dict) -> None:
+    import pickle
+
+    if path:
+        tmp = Path(str(path) + ".tmp")
+        with open(tmp, "wb") as f:
+            pickle.dump({"key": key, "items": items}, f)
+        tmp.replace(path)
 
 
 def _default_variant(retriever) -> str:

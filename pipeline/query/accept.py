@@ -5,8 +5,9 @@ one answer into ``confidence``, a calibrated probability that the top-1 model is
 ``accepted = confidence >= accept_threshold``. It runs on plain numbers (no model, no store):
 
 * :func:`answer_features` reads the answer's features: the top-1 ranking score (fused with verification
-  when verified), its margin to the next model, the top-1's verification inliers, its stage-1 text score,
-  and whether stage 1 had to fall back (nothing reached tau).
+  when verified), its margin to the next model, the top-1's verification inliers, its stage-1 text score
+  and how far that is behind the best text score of the candidates, and whether stage 1 had to fall back
+  (nothing reached tau).
 * A :class:`Calibration` holds one logistic model per ranking variant (mode, verified or not), fitted by
   ``python -m pipeline.evaluate openset`` on a split where the right mesh is absent
   (:mod:`pipeline.evaluate.openset`), and its default operating point. Each profile's calibration ships
@@ -29,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
-FEATURES = ("score", "margin", "inliers", "text_score", "fallback")
+FEATURES = ("score", "margin", "inliers", "text_score", "text_gap", "fallback")
 #: margins are clipped here (a lone candidate has no next model and gets the cap)
 MARGIN_CAP = 0.25
 #: the roles whose model identity decides whether a calibration applies
@@ -47,11 +48,16 @@ def variant_of(mode: str, verified: bool) -> str:
 
 
 def answer_features(
-    keys: list[float], inliers: int | None, text_score: float | None, used_fallback: bool
+    keys: list[float],
+    inliers: int | None,
+    text_score: float | None,
+    used_fallback: bool,
+    best_text: float | None = None,
 ) -> dict[str, float | None]:
     """Features of one answer. ``keys``: the ranking key (fused score when verified, else the image score;
     text score in text-only mode) of the best candidates in rank order, at least the top two when there
-    are two; ``inliers`` / ``text_score``: the top-1's (``None`` when not verified / no stage 1)."""
+    are two; ``inliers`` / ``text_score``: the top-1's (``None`` when not verified / no stage 1);
+    ``best_text``: the best stage-1 score of any candidate (``text_gap`` = how far the top-1 is behind it)."""
     if not keys:
         return dict.fromkeys(FEATURES)
     s1 = float(keys[0])
@@ -63,6 +69,9 @@ def answer_features(
         "margin": max(margin, 0.0),
         "inliers": None if inliers is None or inliers < 0 else math.log1p(int(inliers)),
         "text_score": None if text_score is None or not math.isfinite(text_score) else float(text_score),
+        "text_gap": None
+        if text_score is None or best_text is None or not math.isfinite(best_text - text_score)
+        else max(float(best_text) - float(text_score), 0.0),
         "fallback": 1.0 if used_fallback else 0.0,
     }
 
@@ -268,4 +277,5 @@ def ranking_features(
     top = int(order[0])
     inl = int(inliers[top]) if inliers is not None and inliers[top] >= 0 else None
     t = None if text is None else float(text[top])
-    return answer_features([float(keys[int(j)]) for j in order[:2]], inl, t, used_fallback)
+    best = None if text is None else float(np.max(text))
+    return answer_features([float(keys[int(j)]) for j in order[:2]], inl, t, used_fallback, best)
