@@ -17,7 +17,9 @@ from pipeline.evaluate.openset import (
     operating_point,
     rate,
     rates_at,
+    rejected_at_target,
     rejection_curve,
+    select_features,
     usable_features,
 )
 from pipeline.query.accept import (
@@ -26,6 +28,8 @@ from pipeline.query.accept import (
     Calibration,
     CalibrationError,
     answer_features,
+    cohort_indices,
+    cohort_stats,
     judge,
     load_calibration,
     ranking_features,
@@ -49,6 +53,19 @@ def test_answer_features_margin_inliers_and_fallback():
     assert answer_features([0.9, 0.1], None, None, False)["margin"] == MARGIN_CAP  # clipped
     assert answer_features([0.5, -math.inf], None, None, False)["margin"] == MARGIN_CAP  # no views
     assert all(v is None for v in answer_features([], None, None, False).values())
+
+
+def test_text_gap_and_cohort_z():
+    f = answer_features([0.8, 0.7], None, 0.5, False, best_text=0.6, image=0.7, cohort=(0.4, 0.1))
+    assert f["text_gap"] == pytest.approx(0.1) and f["cohort_z"] == pytest.approx(3.0)
+    g = answer_features([0.8], None, None, False, best_text=0.6, image=0.7, cohort=None)
+    assert g["text_gap"] is None and g["cohort_z"] is None
+    assert answer_features([0.8], None, 0.5, False, 0.5, 0.7, (0.4, 0.0))["cohort_z"] is None
+    assert cohort_indices(5).tolist() == [0, 1, 2, 3, 4]
+    big = cohort_indices(100_000, size=1024)
+    assert len(big) == 1024 and big[0] == 0 and big[-1] == 99_999 and (np.diff(big) > 0).all()
+    assert cohort_stats(np.array([0.1, 0.3, -np.inf, 0.5])) == pytest.approx((0.3, np.std([0.1, 0.3, 0.5])))
+    assert cohort_stats(np.array([0.1, -np.inf])) is None
 
 
 def test_ranking_features_read_the_top_two_of_the_order():
@@ -197,6 +214,19 @@ def test_cross_validation_never_sees_the_held_out_group():
         if e.group == "g3":
             assert e.confidence == pytest.approx(before[e.query_id])
     assert any(e.confidence != pytest.approx(before[e.query_id]) for e in flipped if e.group != "g3")
+
+
+def test_forward_selection_keeps_the_informative_feature_and_drops_noise():
+    rng = np.random.default_rng(1)
+    exs = examples(n_groups=6)
+    for e in exs:
+        e.features["text_score"] = float(rng.normal())  # pure noise
+    chosen = select_features(exs, ("score", "margin", "text_score"), 0.9)
+    assert chosen[0] == "score" and "text_score" not in chosen
+    conf = np.array([1.0 if e.correct else 0.0 for e in exs])
+    assert rejected_at_target(exs, conf, 0.9) == 1.0
+    picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True)
+    assert sum(picked.values()) == len({e.group for e in exs})
 
 
 def test_rates_curve_and_calibration_error():

@@ -7,7 +7,9 @@ query whose expected mesh is not in the store at all counts as absent against th
 
 Per ranking variant (mode, verified or not) a logistic model of P(top-1 right | answer features) is fitted
 (scikit-learn, standardised features; each query file weighs the same in total, so a few real photos are
-not drowned by many synthetic renders). Everything reported is out of fold: leave one object out (all
+not drowned by many synthetic renders). Its features are picked by greedy forward selection, scored by
+the absent answers rejected at the target acceptance in grouped 5-fold cross-validation of the training
+answers only (:func:`select_features`). Everything reported is out of fold: leave one object out (all
 answers of an object, with and without it in the library, in the same fold); inside each fold the
 operating point is the highest threshold that still accepts ``target`` of the *training* folds' correct
 answers. The shipped model is then fitted on all answers with the same rule.
@@ -181,17 +183,72 @@ def operating_point(correct_conf: np.ndarray, target: float) -> float:
     return math.floor(c[min(k, len(c) - 1)] * 1e4) / 1e4
 
 
-def cross_validate(examples: list[Example], features: tuple[str, ...], target: float, c: float = 1.0) -> None:
-    """Leave one object out: fill each example's out-of-fold ``confidence`` and ``accepted``."""
+def rejected_at_target(examples: list[Example], conf: np.ndarray, target: float) -> float:
+    """Share of the absent answers rejected at the threshold that accepts ``target`` of the correct ones."""
+    right = np.array([e.library == "full" and e.correct for e in examples])
+    absent = np.array([e.library == "absent" for e in examples])
+    if not right.any() or not absent.any():
+        return 0.0
+    t = operating_point(conf[right], target)
+    return float((conf[absent] < t).mean())
+
+
+def select_features(
+    examples: list[Example], candidates: tuple[str, ...], target: float, c: float = 1.0, folds: int = 5
+) -> tuple[str, ...]:
+    """Greedy forward selection from ``("score",)``: add the candidate that most raises the absent answers
+    rejected at ``target`` acceptance of the correct ones, measured by grouped ``folds``-fold
+    cross-validation inside ``examples``; stop when no candidate adds at least half a point."""
+    from sklearn.model_selection import GroupKFold
+
+    groups = np.array([e.group for e in examples])
+    k = min(folds, len(set(groups)))
+    splits = list(GroupKFold(n_splits=k).split(np.zeros(len(groups)), groups=groups)) if k >= 2 else []
+
+    def score(feats: tuple[str, ...]) -> float:
+        conf = np.zeros(len(examples))
+        for train, test in splits:
+            tr = [examples[i] for i in train]
+            try:
+                m = fit(tr, feats, target, c)
+            except ValueError:  # a fold with only right (or only wrong) answers
+                return -1.0
+            conf[test] = m.predict(_matrix([examples[i] for i in test], feats)[0])
+        return rejected_at_target(examples, conf, target)
+
+    chosen = ("score",)
+    if not splits:
+        return chosen
+    best = score(chosen)
+    while True:
+        trials = [(score((*chosen, f)), f) for f in candidates if f not in chosen]
+        if not trials:
+            return chosen
+        value, f = max(trials, key=lambda t: (t[0], -candidates.index(t[1])))
+        if value < best + 0.005:
+            return chosen
+        chosen, best = (*chosen, f), value
+
+
+def cross_validate(
+    examples: list[Example], features: tuple[str, ...], target: float, c: float = 1.0, select: bool = False
+) -> dict[str, int]:
+    """Leave one object out: fill each example's out-of-fold ``confidence`` and ``accepted``. With
+    ``select``, each fold picks its features from ``features`` on its training folds alone
+    (:func:`select_features`); returns how often each feature set was picked."""
     groups = sorted({e.group for e in examples})
+    picked: dict[str, int] = {}
     for g in groups:
         train = [e for e in examples if e.group != g]
         test = [e for e in examples if e.group == g]
-        model = fit(train, features, target, c)
-        x, _ = _matrix(test, features)
+        feats = select_features(train, features, target, c) if select else features
+        picked[",".join(feats)] = picked.get(",".join(feats), 0) + 1
+        model = fit(train, feats, target, c)
+        x, _ = _matrix(test, feats)
         for e, p in zip(test, model.predict(x), strict=True):
             e.confidence = float(p)
             e.accepted = bool(p >= model.threshold)
+    return picked
 
 
 # ---------------------------------------------------------------------------- report

@@ -206,6 +206,7 @@ def _fit_all(examples, default, args, profile, models, command, n_dropped):
         fit,
         rates_at,
         rejection_curve,
+        select_features,
         usable_features,
     )
     from pipeline.query.accept import CALIBRATED_ROLES, Calibration
@@ -218,8 +219,9 @@ def _fit_all(examples, default, args, profile, models, command, n_dropped):
         feats = usable_features(exs)
         if not feats or all(e.correct for e in exs) or not any(e.correct for e in exs):
             continue
-        cross_validate(exs, feats, args.target, args.c)
-        model = fit(exs, feats, args.target, args.c)
+        picked = cross_validate(exs, feats, args.target, args.c, select=True)
+        chosen = select_features(exs, feats, args.target, args.c)
+        model = fit(exs, chosen, args.target, args.c)
         fitted[name] = model
         slices = {}
         for src in sorted({e.source for e in exs}):
@@ -228,7 +230,8 @@ def _fit_all(examples, default, args, profile, models, command, n_dropped):
                 if part:
                     slices[f"{src} / {roi}"] = asdict(rates_at(part))
         variants[name] = {
-            "features": list(feats),
+            "features": list(chosen),
+            "features_per_fold": picked,
             "threshold": model.threshold,
             "n_answers": len(exs),
             "n_groups": len({e.group for e in exs}),

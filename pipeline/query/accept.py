@@ -6,8 +6,10 @@ one answer into ``confidence``, a calibrated probability that the top-1 model is
 
 * :func:`answer_features` reads the answer's features: the top-1 ranking score (fused with verification
   when verified), its margin to the next model, the top-1's verification inliers, its stage-1 text score
-  and how far that is behind the best text score of the candidates, and whether stage 1 had to fall back
-  (nothing reached tau).
+  and how far that is behind the best text score of the candidates, whether stage 1 had to fall back
+  (nothing reached tau), and ``cohort_z``: how many standard deviations the top-1's image score stands
+  above the query's image scores over the library (a cohort of up to 1024 meshes; score normalisation
+  as in speaker verification: an absent object's best match rarely stands out of the crowd).
 * A :class:`Calibration` holds one logistic model per ranking variant (mode, verified or not), fitted by
   ``python -m pipeline.evaluate openset`` on a split where the right mesh is absent
   (:mod:`pipeline.evaluate.openset`), and its default operating point. Each profile's calibration ships
@@ -30,7 +32,9 @@ from pathlib import Path
 import numpy as np
 
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
-FEATURES = ("score", "margin", "inliers", "text_score", "text_gap", "fallback")
+FEATURES = ("score", "margin", "inliers", "text_score", "text_gap", "fallback", "cohort_z")
+#: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
+COHORT_SIZE = 1024
 #: margins are clipped here (a lone candidate has no next model and gets the cap)
 MARGIN_CAP = 0.25
 #: the roles whose model identity decides whether a calibration applies
@@ -53,11 +57,15 @@ def answer_features(
     text_score: float | None,
     used_fallback: bool,
     best_text: float | None = None,
+    image: float | None = None,
+    cohort: tuple[float, float] | None = None,
 ) -> dict[str, float | None]:
     """Features of one answer. ``keys``: the ranking key (fused score when verified, else the image score;
     text score in text-only mode) of the best candidates in rank order, at least the top two when there
     are two; ``inliers`` / ``text_score``: the top-1's (``None`` when not verified / no stage 1);
-    ``best_text``: the best stage-1 score of any candidate (``text_gap`` = how far the top-1 is behind it)."""
+    ``best_text``: the best stage-1 score of any candidate (``text_gap`` = how far the top-1 is behind it);
+    ``image`` / ``cohort``: the top-1's image score and the (mean, std) of the query's image scores over
+    the library's cohort (``cohort_z`` = how far the top-1 stands out of the library, in stds)."""
     if not keys:
         return dict.fromkeys(FEATURES)
     s1 = float(keys[0])
@@ -73,6 +81,9 @@ def answer_features(
         if text_score is None or best_text is None or not math.isfinite(best_text - text_score)
         else max(float(best_text) - float(text_score), 0.0),
         "fallback": 1.0 if used_fallback else 0.0,
+        "cohort_z": None
+        if image is None or cohort is None or not math.isfinite(image) or not cohort[1] > 0
+        else (float(image) - cohort[0]) / cohort[1],
     }
 
 
@@ -269,13 +280,33 @@ def ranking_features(
     inliers: np.ndarray,
     text: np.ndarray | None,
     used_fallback: bool,
+    image: np.ndarray | None = None,
+    cohort: tuple[float, float] | None = None,
 ) -> dict[str, float | None]:
     """:func:`answer_features` from a ranking's arrays: ``order`` (candidate positions, best first), the
-    ranking ``keys``, verification ``inliers`` (-1 = not verified) and stage-1 ``text`` scores by position."""
+    ranking ``keys``, verification ``inliers`` (-1 = not verified), stage-1 ``text`` and stage-2 ``image``
+    scores by position, and the query's ``cohort`` statistics (:func:`cohort_stats`)."""
     if not len(order):
         return answer_features([], None, None, used_fallback)
     top = int(order[0])
     inl = int(inliers[top]) if inliers is not None and inliers[top] >= 0 else None
     t = None if text is None else float(text[top])
     best = None if text is None else float(np.max(text))
-    return answer_features([float(keys[int(j)]) for j in order[:2]], inl, t, used_fallback, best)
+    img = None if image is None else float(image[top])
+    keys2 = [float(keys[int(j)]) for j in order[:2]]
+    return answer_features(keys2, inl, t, used_fallback, best, img, cohort)
+
+
+def cohort_indices(n_meshes: int, size: int = COHORT_SIZE) -> np.ndarray:
+    """The meshes (positions) whose image scores form the cohort: all of them up to ``size``, else an
+    evenly spaced ``size`` (deterministic; the cost per query stays bounded in large libraries)."""
+    if n_meshes <= size:
+        return np.arange(n_meshes)
+    return np.unique(np.linspace(0, n_meshes - 1, size).round().astype(np.int64))
+
+
+def cohort_stats(scores: np.ndarray) -> tuple[float, float] | None:
+    """(mean, std) of a query's finite image scores over the cohort (``None`` with fewer than 3)."""
+    s = np.asarray(scores, np.float64)
+    s = s[np.isfinite(s)]
+    return (float(s.mean()), float(s.std())) if len(s) >= 3 else None

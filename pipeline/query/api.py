@@ -311,7 +311,9 @@ class Retriever:
             order, fused, inl = self._verified(emb, s1.mesh_idx, s2.scores, order, verify, timings)
             decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
         keys = s1.scores if mode == "text-only" else fused
-        verdict = self._judge(mode, order, keys, inl, s1.scores, used_fallback, accept_threshold)
+        verdict = self._judge(
+            emb, mode, order, keys, inl, s1.scores, s2.scores, used_fallback, accept_threshold
+        )
         order = order[: int(top)]
         cands = [
             self._candidate(
@@ -348,7 +350,7 @@ class Retriever:
         idx = np.arange(len(s2.scores))
         order = np.lexsort((idx, -s2.scores))
         order, fused, inl = self._verified(emb, idx, s2.scores, order, verify, timings)
-        verdict = self._judge("image-only", order, fused, inl, None, False, accept_threshold)
+        verdict = self._judge(emb, "image-only", order, fused, inl, None, s2.scores, False, accept_threshold)
         order = order[: int(top)]
         cands = [
             self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j])
@@ -453,12 +455,13 @@ class Retriever:
         if value is not None and not 0.0 <= float(value) <= 1.0:
             raise QueryError(f"accept threshold must be within [0, 1], got {value}")
 
-    def _judge(self, mode, order, keys, inliers, text, used_fallback, threshold):
+    def _judge(self, emb, mode, order, keys, inliers, text, image, used_fallback, threshold):
         """The open-set verdict of a ranking (before it is cut to ``top``)."""
-        from pipeline.query.accept import judge, ranking_features, variant_of
+        from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
 
         verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
-        feats = ranking_features(order, keys, inliers, text, used_fallback)
+        cohort = cohort_stats(self.reranker.score(emb.image_space, cohort_indices(self.n_meshes)).scores)
+        feats = ranking_features(order, keys, inliers, text, used_fallback, image, cohort)
         t = self.settings.accept_threshold if threshold is None else threshold
         return judge(self.calibration, feats, variant_of(mode, verified), t, self.calibration_mismatch)
 
