@@ -66,6 +66,7 @@ def without_meshes(retriever, mesh_ids) -> object:
         threads=retriever.text_filter.threads,
     )
     r.version = retriever.version
+    r.recover = False  # a reload would bring the left-out meshes back: fail instead
     return r
 
 

@@ -11,7 +11,10 @@ over tau, fallback-k, prompt weight or mode reuse one embedding.
 A ``Retriever`` is thread-safe: stage 1 borrows a DuckDB connection per call, models are built once under a
 lock, and the adapters and stage 2 only read shared state. It answers from the store state it opened;
 :meth:`Retriever.reopened` gives one on the latest commits that shares the loaded models (what the HTTP
-service does when :func:`pipeline.query.library.store_version` changes).
+service does when :func:`pipeline.query.library.store_version` changes). The state is one consistent
+snapshot of every table (:mod:`pipeline.snapshot`), leased in the store while open (:mod:`pipeline.leases`)
+so that ``compact`` spares its files; a query that still meets a vanished file reloads the newest snapshot
+in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = False`` turns that off).
 """
 
 from __future__ import annotations
@@ -20,17 +23,18 @@ import threading
 import time
 from collections.abc import Iterable
 
-import numpy as np
-
-from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
+from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
-from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
+from pipeline.query.recover import Gate, recovering, vanished_file
+from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
-from pipeline.query.stage1 import FALLBACK_UNITS, TextFilter
+from pipeline.query.stage1 import TextFilter
 from pipeline.query.stage2 import ViewReranker
+from pipeline.query.steps import rank
+from pipeline.query.steps.state import RankContext
 from pipeline.query.verify import LocalVerifier
 
 
@@ -52,6 +56,11 @@ class Retriever:
         # tables.con (candidate_views, mesh lookups) runs one statement at a time
         self._db_lock = threading.Lock()
         self.version = None  # store version this state was read at (set by open)
+        self.versions: dict[str, int] = store.versions()  # the snapshot read (pinned at open)
+        self.lease = None  # this reader's lease in the store (set by open)
+        self.recover = True  # reload and retry once when a query meets a vanished file
+        self.generation = 0  # bumped by each reload in place
+        self._gate = Gate()
         self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
@@ -63,11 +72,14 @@ class Retriever:
             tables.meshes.column("mesh_id").to_pylist(),
             VerifyConfig(top=settings.verify_top, weight=settings.verify_weight),
         )
-        m = tables.meshes
-        self._mesh_id = m.column("mesh_id").to_pylist()
-        self._name = m.column("name").to_pylist()
-        self._path = m.column("source_path").to_pylist()
-        self._root = m.column("library_root").to_pylist()
+        self.ranking = RankContext.from_meshes(
+            tables.meshes,
+            text_filter=self.text_filter,
+            reranker=self.reranker,
+            verifier=self.verifier,
+            settings=settings,
+        )
+        self._mesh_id = self.ranking.mesh_id
         self._init_acceptance()
 
     # ------------------------------------------------------------------ opening
@@ -85,6 +97,7 @@ class Retriever:
         threads: int | None = None,
         settings_changes: dict | None = None,
         preload: bool = True,
+        lease: bool = True,
     ) -> Retriever:
         """Open ``store_path`` for queries with ``profile`` ("auto": the profile the store was onboarded with).
 
@@ -92,13 +105,45 @@ class Retriever:
         :func:`pipeline.models.registry.create_model` from the profile (detector and segmenter on first use).
         ``settings`` / ``settings_changes`` replace / adjust the profile's query defaults
         (:mod:`pipeline.query.settings`); ``use_cache`` reads and writes ``STORE/_cache/query``;
-        ``preload=False`` defers every model to its first use.
+        ``preload=False`` defers every model to its first use; ``lease=False`` opens without a reader
+        lease (compaction then spares this reader's files only through its retention period).
         """
+        args = {k: v for k, v in locals().items() if k != "cls"}
+        try:
+            return cls._open(**args)
+        except Exception as exc:
+            if not vanished_file(exc, store_path):
+                raise
+        return cls._open(**args)  # compaction removed files while opening: once more, on its result
+
+    @classmethod
+    def _open(
+        cls,
+        store_path,
+        profile,
+        model_overrides,
+        device,
+        models,
+        *,
+        settings,
+        use_cache,
+        threads,
+        settings_changes,
+        preload,
+        lease,
+    ) -> Retriever:
+        from pipeline.leases import Lease
         from pipeline.profiles import PROFILES, get_profile
-        from pipeline.store import Store
+        from pipeline.snapshot import open_snapshot
 
         version = store_version(store_path)  # read first: a commit racing the open is seen next time
-        store = Store.open(store_path)
+        held = Lease(store_path, "retriever") if lease else None
+        try:
+            store = open_snapshot(store_path, held)
+        except BaseException:
+            if held is not None:
+                held.release()
+            raise
         try:
             onboarding = latest_onboarding(store)
             if profile in (None, "", "auto"):
@@ -115,6 +160,7 @@ class Retriever:
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
             r.version = version
+            r.lease = held
             r._open_args = {
                 "store_path": store_path,
                 "profile": prof.name,
@@ -123,12 +169,15 @@ class Retriever:
                 "settings": settings,
                 "use_cache": use_cache,
                 "threads": threads,
+                "lease": lease,
             }
             if preload:
                 r.load_models(r.required_roles())
             return r
         except BaseException:
             store.close()
+            if held is not None:
+                held.release()
             raise
 
     def __enter__(self) -> Retriever:
@@ -156,6 +205,8 @@ class Retriever:
         self.text_filter.close()
         self.tables.con.close()
         self.store.close()
+        if self.lease is not None:
+            self.lease.release()
 
     # ------------------------------------------------------------------ models
     def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
@@ -225,27 +276,10 @@ class Retriever:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb
 
-    def _verified(self, emb: QueryEmbedding, mesh_idx, image, order, verify, timings):
-        """Fuse local-feature inliers into the top ``verify_top`` of ``order``: (new order, fused, inliers)."""
-        inl = np.full(len(mesh_idx), -1, np.int64)
-        fused = np.asarray(image, np.float32).copy()
-        on = self.settings.verify if verify is None else bool(verify)
-        if not on or emb.local is None or not len(order):
-            return order, fused, inl
-        top = order[: max(int(self.settings.verify_top), 0)]
-        cache, seconds = self.verifier.inliers(emb.local, [int(mesh_idx[j]) for j in top], emb.inliers)
-        timings["verify_ms"] = seconds * 1000
-        counts = np.array([cache[int(mesh_idx[j])][0] for j in top], np.int64)
-        inl[top] = counts
-        fused[top] += self.verifier.cfg.bonus(counts)
-        rest = np.full(len(order), len(order), np.int64)
-        rest[order] = np.arange(len(order))  # the global order breaks ties of the fused score
-        return np.lexsort((rest, -fused)), fused, inl
-
     def rank(
         self,
         emb: QueryEmbedding,
-        mode: str = "two-stage",
+        mode: str | None = None,
         threshold: float | None = None,
         fallback_k: int = 10,
         top: int = 5,
@@ -255,132 +289,31 @@ class Retriever:
         verify: bool | None = None,
         accept_threshold: float | None = None,
     ) -> QueryResult:
-        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps).
+        """Rank the store's models for ``emb`` with the mode's step list (:mod:`pipeline.query.steps`; no
+        model calls: cheap enough for parameter sweeps). ``None`` = the settings' value.
 
         ``fallback_unit``: what ``fallback_k`` counts when nothing passes tau, ``"captions"`` (the paper's:
-        the top-k caption rows kept as their distinct models) or ``"meshes"``; ``None`` = the settings'.
-        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses
-        (raw view scores: verification re-ranks models, not views).
-        ``verify`` (default: the settings') re-ranks the top candidates with local features when the
-        embedding carries the ROI's keypoints; inlier counts are cached on ``emb``.
-        ``accept_threshold`` (default: the settings', else the calibration's) sets the open-set operating
-        point of ``result.accepted`` (:mod:`pipeline.query.accept`).
+        the top-k caption rows kept as their distinct models) or ``"meshes"``.
+        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses.
+        ``verify`` re-ranks the top candidates with local features when the embedding carries the ROI's
+        keypoints; inlier counts are cached on ``emb``. ``accept_threshold`` sets the open-set operating
+        point of ``result.accepted`` (:mod:`pipeline.query.accept`; default: the calibration's).
         """
-        self._check_accept_threshold(accept_threshold)
-        if mode not in MODES:
-            raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
-        unit = self.settings.fallback_unit if fallback_unit is None else fallback_unit
-        if unit not in FALLBACK_UNITS:
-            raise QueryError(f"unknown fallback unit {unit!r}; choose from {', '.join(FALLBACK_UNITS)}")
-        if int(top) < 1 or int(fallback_k) < 1:
-            raise QueryError("--top and --fallback-k must be at least 1")
-        tau = self.settings.threshold if threshold is None else float(threshold)
-        w = self.settings.prompt_weight if prompt_weight is None else float(prompt_weight)
-        if not 0.0 <= w <= 1.0:
-            raise QueryError(f"prompt weight must be within [0, 1], got {w}")
-        if w > 0 and emb.prompt_vec is None:
-            raise QueryError(
-                "this embedding has no prompt vector: open the Retriever with a prompt weight > 0"
-            )
-        timings: dict[str, float] = {}
-        try:
-            if mode == "image-only":
-                return self._rank_image_only(
-                    emb, top, tau, fallback_k, w, timings, unit, views, verify, accept_threshold
-                )
-            text_only = mode == "text-only"
-            s1 = self.text_filter.run(
-                stage1_vector(emb, w),
-                None if text_only else tau,
-                top if text_only else fallback_k,
-                "meshes" if text_only else unit,  # text-only lists the top models
-            )
-            s2 = self.reranker.score(emb.image_space, s1.mesh_idx, per_view=views and not text_only)
-        except ValueError as exc:  # vector widths that do not match the store
-            raise QueryError(
-                f"{exc}: the store was embedded with other models than this query uses"
-            ) from None
-        timings["stage1_ms"] = s1.seconds * 1000
-        timings["stage2_ms"] = s2.seconds * 1000
-        fused, inl = s2.scores, np.full(len(s1.mesh_idx), -1, np.int64)
-        if mode == "text-only":
-            order = np.arange(len(s1.mesh_idx))
-            decided, used_fallback = "stage1", False
-        else:
-            order = np.lexsort((s1.mesh_idx, -s1.scores, -s2.scores))
-            order, fused, inl = self._verified(emb, s1.mesh_idx, s2.scores, order, verify, timings)
-            decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
-        keys = s1.scores if mode == "text-only" else fused
-        verdict = self._judge(
-            emb, mode, order, keys, inl, s1.scores, s2.scores, used_fallback, accept_threshold
-        )
-        order = order[: int(top)]
-        cands = [
-            self._candidate(
-                i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j], inl[j], fused[j]
-            )
-            for i, j in enumerate(order)
-        ]
-        result = QueryResult(
-            cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
-        )
-        result.verdict = verdict
-        if views and mode == "text-only":
-            result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
-        elif views:
-            result.view_ranking = _view_ranking(s1.mesh_idx, s2, s1.scores)
-        return result
-
-    def _caption_ranking(self, vec, mesh_idx: np.ndarray) -> ViewRanking:
-        """Every caption row of ``mesh_idx`` by its own stage-1 cosine (text-only's view-level ranking)."""
-        rows_mesh, scores = self.text_filter.caption_scores(vec)
-        keep = np.zeros(self.n_meshes, bool)
-        keep[np.asarray(mesh_idx, dtype=np.int64)] = True
-        sel = keep[rows_mesh]
-        m, s = rows_mesh[sel], scores[sel]
-        order = np.lexsort((m, -s))
-        return ViewRanking(m[order], np.full(len(order), -1, np.int16), s[order])
-
-    def _rank_image_only(
-        self, emb, top, tau, fallback_k, w, timings, unit, views=False, verify=None, accept_threshold=None
-    ) -> QueryResult:
-        s2 = self.reranker.score(emb.image_space, None, per_view=views)
-        timings["stage1_ms"] = 0.0
-        timings["stage2_ms"] = s2.seconds * 1000
-        idx = np.arange(len(s2.scores))
-        order = np.lexsort((idx, -s2.scores))
-        order, fused, inl = self._verified(emb, idx, s2.scores, order, verify, timings)
-        verdict = self._judge(emb, "image-only", order, fused, inl, None, s2.scores, False, accept_threshold)
-        order = order[: int(top)]
-        cands = [
-            self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j])
-            for i, j in enumerate(order)
-        ]
-        result = QueryResult(
-            cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w, unit
-        )
-        result.verdict = verdict
-        if views:
-            result.view_ranking = _view_ranking(idx, s2, None)
-        return result
-
-    def _candidate(self, rank, mesh_idx, text, image, view, inliers=-1, fused=None) -> Candidate:
-        j = int(mesh_idx)
-        ok = image is not None and np.isfinite(image)
-        verified = ok and inliers is not None and inliers >= 0
-        return Candidate(
-            rank=rank,
-            mesh_id=self._mesh_id[j],
-            name=self._name[j],
-            source_path=self._path[j],
-            text_score=None if text is None else round(float(text), 6),
-            image_score=round(float(image), 6) if ok else None,
-            best_view=int(view) if ok and view >= 0 else None,
-            library_root=self._root[j],
-            inliers=int(inliers) if verified else None,
-            score=round(float(fused), 6) if verified and fused is not None else None,
+        return rank(
+            self.ranking,
+            emb,
+            mode=mode,
+            threshold=threshold,
+            fallback_k=fallback_k,
+            top=top,
+            prompt_weight=prompt_weight,
+            fallback_unit=fallback_unit,
+            views=views,
+            verify=verify,
+            accept_threshold=accept_threshold,
         )
 
+    @recovering
     def query(
         self,
         image,
@@ -388,7 +321,7 @@ class Retriever:
         box=None,
         mask=None,
         roi_mode: str = "segm",
-        mode: str = "two-stage",
+        mode: str | None = None,
         threshold: float | None = None,
         fallback_k: int = 10,
         top: int = 5,
@@ -398,7 +331,7 @@ class Retriever:
         accept_threshold: float | None = None,
     ) -> QueryResult:
         """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
-        if mode not in MODES:
+        if mode is not None and mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
         self._check_accept_threshold(accept_threshold)
         loaded = sum(self.load_seconds.values())
@@ -450,20 +383,12 @@ class Retriever:
             raise QueryError(str(exc)) from None
         models = self.tables.onboarding.models
         self.calibration_mismatch = None if self.calibration is None else self.calibration.mismatch(models)
+        self.ranking.calibration = self.calibration
+        self.ranking.calibration_mismatch = self.calibration_mismatch
 
     def _check_accept_threshold(self, value) -> None:
         if value is not None and not 0.0 <= float(value) <= 1.0:
             raise QueryError(f"accept threshold must be within [0, 1], got {value}")
-
-    def _judge(self, emb, mode, order, keys, inliers, text, image, used_fallback, threshold):
-        """The open-set verdict of a ranking (before it is cut to ``top``)."""
-        from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
-
-        verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
-        cohort = cohort_stats(self.reranker.score(emb.image_space, cohort_indices(self.n_meshes)).scores)
-        feats = ranking_features(order, keys, inliers, text, used_fallback, image, cohort)
-        t = self.settings.accept_threshold if threshold is None else threshold
-        return judge(self.calibration, feats, variant_of(mode, verified), t, self.calibration_mismatch)
 
     # ------------------------------------------------------------------ store lookups
     @property
@@ -484,6 +409,7 @@ class Retriever:
             raise QueryError(f"no active mesh {mesh_id!r} in this store")
         return self.tables.meshes.slice(j, 1).to_pylist()[0]
 
+    @recovering
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
         """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
         from pipeline.db import load_sql
@@ -497,15 +423,3 @@ class Retriever:
         with self._db_lock:
             rel = self.tables.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
-
-
-def _view_ranking(mesh_idx: np.ndarray, s2, text: np.ndarray | None) -> ViewRanking:
-    """Flatten stage 2's per-view matrix of ``mesh_idx`` into one ranking of views, best first."""
-    scores, ids = s2.view_scores, s2.view_ids
-    mesh = np.broadcast_to(np.asarray(mesh_idx, dtype=np.int32)[:, None], scores.shape)
-    valid = ids >= 0
-    m, v, s = mesh[valid], ids[valid], scores[valid]
-    t = None if text is None else np.broadcast_to(np.asarray(text, np.float32)[:, None], scores.shape)[valid]
-    keys = (v, m, -s) if t is None else (v, m, -t, -s)
-    order = np.lexsort(keys)
-    return ViewRanking(m[order], v[order], s[order], None if t is None else t[order])
