@@ -75,6 +75,8 @@ def result_record(res) -> dict:
     """A QueryResult without timings, plus its view-level ranking (exact arrays)."""
     d = res.to_dict()
     d.pop("timings_ms", None)
+    for key in ("accepted", "confidence", "accept_threshold", "acceptance"):  # the open-set verdict: a
+        d.pop(key, None)  # calibrated layer on top of the ranking (tests/test_openset.py), not the ranking
     d["timing_keys"] = sorted(res.timings)
     vr = res.view_ranking
     if vr is not None:

@@ -147,12 +147,11 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         models = {k: v for k, v in full.tables.onboarding.models.items()}
         profile = full.profile.name
     command = "python -m pipeline.evaluate openset " + " ".join(shlex.quote(a) for a in argv)
+    _write_examples(examples, out / "examples.jsonl")  # the answers first: fitting takes a while
     summary, calibration = _fit_all(examples, default, args, profile, models, command, len(drop))
     summary["errors"] = errors
     (out / "openset.json").write_text(json.dumps(summary, indent=1) + "\n")
-    with open(out / "examples.jsonl", "w", encoding="utf-8") as f:
-        for e in examples:
-            f.write(json.dumps(e.to_json()) + "\n")
+    _write_examples(examples, out / "examples.jsonl")  # now with the out-of-fold confidences
     calibration.write(out / "calibration.json")
     from pipeline.evaluate.openset_report import write_markdown
 
@@ -164,6 +163,12 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     print(_headline(summary))
     print(f"report: {out / 'report.md'}")
     return 0 if not errors else 1
+
+
+def _write_examples(examples, path: Path) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        for e in examples:
+            f.write(json.dumps(e.to_json()) + "\n")
 
 
 def _load_embeddings(path: str | None, key: str) -> dict:
