@@ -28,13 +28,13 @@ def is_type_checking(node: ast.If) -> bool:
     )
 
 
-def runtime_imports(tree: ast.AST):
+def runtime_imports(tree: ast.AST, typing_too: bool = False):
     """Import nodes anywhere in the module (function-level ones too), except ``if TYPE_CHECKING:``
-    blocks, which never run."""
+    blocks, which never run (``typing_too``: those as well)."""
     stack = [tree]
     while stack:
         node = stack.pop()
-        if isinstance(node, ast.If) and is_type_checking(node):
+        if isinstance(node, ast.If) and is_type_checking(node) and not typing_too:
             stack.extend(node.orelse)
             continue
         if isinstance(node, ast.Import | ast.ImportFrom):
@@ -52,12 +52,13 @@ def resolve_from(mod: str, node: ast.ImportFrom) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def graph() -> tuple[dict[str, set[str]], list[str]]:
-    """Module -> the package's modules it imports; and every private name imported across modules."""
+def graph(typing_too: bool = False) -> tuple[dict[str, set[str]], list[str]]:
+    """Module -> the package's modules it imports (``typing_too``: type-checking imports as well); and
+    every private name imported across modules."""
     edges: dict[str, set[str]] = {m: set() for m in MODULES}
     private: list[str] = []
     for mod, path in MODULES.items():
-        for node in runtime_imports(ast.parse(path.read_text(), str(path))):
+        for node in runtime_imports(ast.parse(path.read_text(), str(path)), typing_too):
             if isinstance(node, ast.Import):
                 edges[mod] |= {a.name for a in node.names if a.name in MODULES}
                 continue
@@ -120,6 +121,49 @@ def test_no_import_cycles():
         "pipeline.onboard.engines.base"
     }  # the graph sees imports
     assert cycles(edges) == []
+
+
+def test_no_import_cycles_even_for_type_checking():
+    """Type-only imports close no circle either (the stages read their config through a protocol)."""
+    edges, _ = graph(typing_too=True)
+    assert "pipeline.onboard.config" in edges["pipeline.onboard.engines.base"]
+    assert cycles(edges) == []
+
+
+def reachable_from_entry_points(edges: dict[str, set[str]]) -> set[str]:
+    """Modules the ``oscar`` command and ``python -m pipeline...`` can load: imports, modules named in
+    strings (the verb table, the model adapter registry), each package's ``__main__`` and parents."""
+    for mod, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in MODULES:
+                edges[mod].add(node.value)
+    seen: set[str] = set()
+    stack = ["pipeline", "pipeline.cli", "pipeline.__main__"]
+    while stack:
+        mod = stack.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        stack.extend(edges[mod])
+        if f"{mod}.__main__" in MODULES:
+            stack.append(f"{mod}.__main__")
+        parts = mod.split(".")
+        stack.extend(".".join(parts[:i]) for i in range(1, len(parts)))
+    return seen
+
+
+def test_package_ships_no_test_only_code():
+    """Every module of the package is reachable from its commands: code only tests use lives in tests/."""
+    edges, _ = graph()
+    assert set(MODULES) - reachable_from_entry_points(edges) == set()
+    assert not [m for m in MODULES if "fixture" in m or m.split(".")[-1].startswith("test")]
+
+
+def test_reachability_sees_an_orphan():
+    edges = graph()[0]
+    edges["pipeline.sql.fixtures"] = {"pipeline.store"}  # imports the package; nothing imports it
+    reached = reachable_from_entry_points(edges)
+    assert "pipeline.sql.fixtures" not in reached and "pipeline.sql.cli" in reached
 
 
 def test_cycle_finder_finds_cycles():

@@ -10,6 +10,8 @@ from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from pipeline.query.settings import PROFILE_SETTINGS
+
     p = OneLineParser(
         prog="python -m pipeline.query",
         description="Find the CAD model in an onboarded store that matches the object a prompt names in a photo.",
@@ -47,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--threshold",
         type=float_range(-1.0, 1.0),
         metavar="TAU",
-        help="stage-1 tau (default: paper 0.37, offline 0.50; see docs/query.md)",
+        help=f"stage-1 tau (default: paper {PROFILE_SETTINGS['paper'].threshold:g}, offline "
+        f"{PROFILE_SETTINGS['offline'].threshold:g}; see docs/query.md)",
     )
     how.add_argument(
         "--fallback-k",
@@ -67,7 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--prompt-weight",
         type=float_range(0.0, 1.0),
         metavar="W",
-        help="weight of the prompt in the stage-1 query vector (offline default 0.5, paper 0)",
+        help="weight of the prompt in the stage-1 query vector (offline default "
+        f"{PROFILE_SETTINGS['offline'].prompt_weight:g}, paper {PROFILE_SETTINGS['paper'].prompt_weight:g})",
     )
     how.add_argument(
         "--verify",

@@ -66,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--as-of",
         metavar="VERSION|TIME",
         help="time travel: the store as it was right after version VERSION of its runs table (one "
-        "commit per onboarding run; `python -m pipeline.fsck STORE` lists them) or at an ISO time",
+        "commit per onboarding run; `python -m pipeline.fsck STORE --runs` lists them) or as the last run "
+        "recorded by an ISO time left it (a time before the first run is an error)",
     )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
@@ -84,9 +85,13 @@ def _variables(items: list[str]) -> dict[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from pipeline.cli_common import reader_gone
+
     leases: list = []
     try:
         return _main(argv, leases)
+    except BrokenPipeError:  # `... | head` closed the pipe: the reader has what it wanted
+        return reader_gone()
     finally:
         for lease in leases:
             lease.release()
@@ -163,6 +168,8 @@ def _main(argv: list[str] | None, leases: list) -> int:
             names = audit_names() if "all" in args.audit else args.audit
             found = run_audits(con, names, printer)
             return 1 if args.check and any(found.values()) else 0
+    except BrokenPipeError:
+        raise
     except (duckdb.Error, ValueError, OSError) as exc:
         return fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, 1)
 

@@ -88,6 +88,8 @@ def plan_layout(
 class RayEngine(Engine):
     """Runs a :class:`Plan` on Ray Data; models live in the actors, never in the driver."""
 
+    STOP_BETWEEN_STEPS = False  # a batch arrives with every step done: a stop request keeps all of it
+
     def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
         super().__init__(store, run, run_id, progress)
         self.layout: Layout | None = None
@@ -185,6 +187,8 @@ class RayEngine(Engine):
                 rows = batch.to_pylist()
                 received |= {r["mesh_id"] for r in rows}
                 self._commit_rows(plan, rows, bars, summary)
+                if self.stop.requested:  # SIGINT/SIGTERM: what arrived is committed, the rest waits
+                    return
         except ray.exceptions.RayError as exc:
             setup = _setup_error(exc)
             if setup is exc:
