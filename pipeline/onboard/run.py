@@ -47,7 +47,7 @@ def run_onboarding(
             "engine": cfg.engine,
             "library_root": str(library),
             "profile": cfg.profile,
-            "config_json": json.dumps(spec.describe(), default=str),
+            "config_json": json.dumps({**spec.describe(), "cluster": summary.cluster()}, default=str),
             "started_at": started,
             "finished_at": utcnow(),
             "n_files": summary.n_files,

@@ -46,6 +46,8 @@ class RunSummary:
     seconds: dict[str, float] = field(default_factory=dict)
     total_seconds: float = 0.0
     status: str = "ok"
+    lost_nodes: list[str] = field(default_factory=list)  # Ray nodes lost during the run
+    redone: int = 0  # meshes re-submitted after their batch was lost (a lost node, a crashed worker)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -63,7 +65,19 @@ class RunSummary:
             ),
             f"rendered {self.rendered} meshes, captioned {self.captioned}; {self.total_seconds:.1f}s total "
             f"({rate:.2f} meshes/s); {stages}",
-        ]
+        ] + self.cluster_lines()
+
+    def cluster_lines(self) -> list[str]:
+        """What the cluster lost and what was redone (nothing when nothing was lost)."""
+        if not (self.lost_nodes or self.redone):
+            return []
+        nodes = ", ".join(self.lost_nodes)
+        lost = f"lost Ray node(s) {nodes}" if nodes else "lost Ray worker(s), no node"
+        return [f"{lost}: {self.redone} meshes redone on the surviving workers (not counted as failed)"]
+
+    def cluster(self) -> dict:
+        """The ``cluster`` entry of the run's ``runs`` row."""
+        return {"lost_nodes": list(self.lost_nodes), "meshes_redone": self.redone}
 
 
 class Timer:

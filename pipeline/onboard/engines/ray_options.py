@@ -43,3 +43,7 @@ class RayOptions:
     #: embed_text, embed_image) once, on the batch holding that mesh, if MARKER_FILE does not exist yet
     #: (it is created first); "STAGE:MESH_ID_PREFIX:" kills it on every attempt.
     inject_fault: str = ""
+    #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" makes the STAGE actor, on the first batch
+    #: holding that mesh, write its Ray node id to MARKER_FILE and wait there (for the test to kill
+    #: the node); later attempts run normally.
+    pause_at: str = ""
