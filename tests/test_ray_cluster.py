@@ -3,7 +3,8 @@ raylet of its own on this machine (``ray.cluster_utils.Cluster``). A worker node
 point of a run (an actor waits on a mesh until the test kills its node, or the driver's commit kills
 it): the run finishes on the survivor, no mesh is failed, and the tables equal the local engine's with
 no duplicate rows. Losing every worker, the driver or the head stops the run; the store stays
-consistent and a plain re-run completes."""
+consistent and a plain re-run completes. The module took 401 s on this repository's 2-CPU machine shared with
+other jobs (load about 15): marked slow."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from pipeline.onboard.config import OnboardConfig
 from pipeline.onboard.engines.ray_cluster import RayEngineError
 from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.run import run_onboarding
+from pipeline.profiles import default_elevations
 from pipeline.store import Store
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install 'oscar-pipeline[ray]')")
@@ -40,9 +42,8 @@ WORKERS = 2
 
 def config(engine: str, **ray_kw) -> OnboardConfig:
     opts = RayOptions(render_batch_size=1, caption_batch_size=2, embed_batch_size=2, **ray_kw)
-    return OnboardConfig(
-        render=RenderConfig(resolution=RESOLUTION), engine=engine, workers=0, batch_size=2, ray=opts
-    )
+    render = RenderConfig(resolution=RESOLUTION, elevations_deg=default_elevations("offline"))  # as the CLI's
+    return OnboardConfig(render=render, engine=engine, workers=0, batch_size=2, ray=opts)
 
 
 class Nodes:
@@ -210,9 +211,9 @@ def cli(library, store, *extra) -> subprocess.Popen:
 
 
 def wait_for_commit(store: Path, proc: subprocess.Popen) -> None:
-    """Until the first batch of finished meshes is committed (its views table exists)."""
+    """Until the first batch of finished meshes is committed (its last table, view_features, exists)."""
     deadline = time.monotonic() + 300
-    while not (store / "views" / "_delta_log").exists():
+    while not (store / "view_features" / "_delta_log" / f"{0:020d}.json").exists():
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline
         time.sleep(0.1)
@@ -231,18 +232,19 @@ def test_driver_killed_rerun_completes(cluster, library, reference, tmp_path):
     assert_no_duplicates(store)
 
 
-def test_head_lost_is_one_clear_line(nodes, library, reference, tmp_path):
-    """Last in this module: the cluster does not survive it."""
+def test_head_lost_stops_the_driver_and_rerun_completes(nodes, library, reference, tmp_path):
+    """Last in this module: the cluster does not survive it. The driver runs on the head's raylet (as on a
+    real cluster, where it runs on the head node), so Ray's core worker ends the driver's process as
+    soon as that raylet dies: a non-zero exit without a Python traceback, and a consistent store that the
+    re-run completes. (A driver on another machine reports the lost head in one line instead.)"""
     nodes.refill()
     store = tmp_path / "store"
     proc = cli(library, store, "--address", nodes.address)
     wait_for_commit(store, proc)
     nodes.cluster.remove_node(nodes.cluster.head_node, allow_graceful=False)
     out, err = proc.communicate(timeout=180)
-    assert proc.returncode == 1, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert lines[-1].startswith("error: lost the Ray head node"), err
-    assert "Traceback" not in err
+    assert proc.returncode != 0
+    assert "Traceback" not in err, err[-3000:]
     assert not fsck(store).problems
     summary = run_onboarding(str(library), str(store), config("local"), progress=False)
     assert summary.failed == 0 and summary.rendered < len(MESHES)

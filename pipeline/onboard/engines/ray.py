@@ -5,8 +5,9 @@ through one ``map_batches`` stage per step (render actors on CPUs, then captione
 pools, on GPUs where the cluster has them) and commits every ``cfg.batch_size`` finished meshes through
 the code the local engine commits with (:meth:`Engine.commit_batch`). Only the driver writes the store,
 so the parts, keys and fingerprints are those of the local engine: either engine can continue the
-other's work. A crashed actor is restarted and its batch retried (``RayOptions.max_retries``); a batch that
-still fails becomes ``errors`` rows (WorkerCrash) and the run goes on.
+other's work. The work runs in rounds: meshes whose batch was lost with a node, a worker or an actor
+are re-submitted to fresh pools on the surviving nodes; only a mesh that kills a fresh worker twice
+becomes an ``errors`` row (WorkerCrash), and a cluster that cannot finish stops the run with one line.
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ from pipeline.onboard.engines.ray_workers import (
 from pipeline.onboard.plan import Plan
 from pipeline.onboard.stages import Step
 from pipeline.store import Store, utcnow
+
+log = logging.getLogger(__name__)
 
 #: lost batches (with no node lost meanwhile) after which a mesh is recorded as failed
 MESH_STRIKES = 2
@@ -143,7 +146,10 @@ class RayEngine(Engine):
         saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
         try:
             if started:
-                ray.shutdown()
+                try:
+                    ray.shutdown()
+                except (Exception, SystemExit):  # noqa: BLE001 - a lost head: the run's own error is the one to report
+                    log.debug("ray.shutdown failed", exc_info=True)
             for t in live:
                 t.join(timeout=PUMP_JOIN_S)
         finally:
@@ -314,6 +320,11 @@ class RayEngine(Engine):
                 if kind == "end":
                     return received
                 if kind == "error":
+                    self._watch(watch, items, received)  # a lost head or cluster, said in one line
+                    if isinstance(value, SystemExit):  # Ray's way out when it loses the cluster
+                        raise RayEngineError(
+                            f"lost the connection to the Ray cluster (Ray logs: {log_dir()})"
+                        ) from None
                     raise value
                 rows = value.to_pylist()
                 self._commit_rows(plan, rows, bars, summary)
