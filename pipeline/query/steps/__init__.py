@@ -47,10 +47,6 @@ class Step:
     run: Callable[..., RankState]
     options: dict = field(default_factory=dict)
 
-    @property
-    def name(self) -> str:
-        return self.run.__module__.rsplit(".", 1)[-1]
-
     def __call__(self, state: RankState) -> RankState:
         return self.run(state, **self.options)
 
