@@ -286,7 +286,7 @@ def test_ranking_steps_do_not_import_the_api():
 
 
 def test_step_lists_are_the_only_place_steps_are_listed():
-    from pipeline.query.settings import MODES
+    from pipeline.query.modes import MODES
     from pipeline.query.steps import STEP_LISTS
 
     assert tuple(STEP_LISTS) == MODES  # the modes are the step lists
@@ -299,9 +299,9 @@ def test_step_lists_are_the_only_place_steps_are_listed():
     edges, _ = graph()
     importers = {mod for mod, deps in edges.items() if deps & modules}
     assert importers == {"pipeline.query.steps"}  # nothing else (nor another step) imports a step
-    # the modes are written out once, in the settings (for --help) and the declaration keys
-    allowed = {STEP_DECLARATION, PACKAGE / "query" / "settings.py"}
-    assert sequence_literals(PACKAGE / "query" / "settings.py", set(MODES))  # the check sees them
+    # the modes are written out once (pipeline/query/modes.py, for --help), and as the declaration's keys
+    allowed = {STEP_DECLARATION, PACKAGE / "query" / "modes.py"}
+    assert sequence_literals(PACKAGE / "query" / "modes.py", set(MODES))  # the check sees them
     elsewhere = [
         hit for path in MODULES.values() if path not in allowed for hit in sequence_literals(path, set(MODES))
     ]

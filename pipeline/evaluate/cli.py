@@ -21,7 +21,7 @@ from pipeline.cli_common import (
     number_list,
     positive_int,
 )
-from pipeline.query.settings import MODES
+from pipeline.query.modes import MODES
 
 OFFLINE_NOTE = (
     "Offline profile: attribute captioner + MiniLM text encoder + classical image descriptor, no downloaded "

@@ -18,7 +18,7 @@ from pipeline.evaluate import metrics_paper
 from pipeline.evaluate.datasets import Query
 from pipeline.evaluate.engine import Embedded, Engine, Ranked, Setting
 from pipeline.evaluate.library import Library
-from pipeline.query.settings import MODES
+from pipeline.query.modes import MODES
 
 ROI_MODES = ("segm", "bbox")
 DEFAULT_TAUS = tuple(round(0.10 + 0.05 * i, 2) for i in range(12))  # 0.10 .. 0.65

@@ -24,9 +24,10 @@ from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding, query_profile, store_version
 from pipeline.query.models import QueryModels, roles_for
+from pipeline.query.modes import MODES
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
-from pipeline.query.settings import MODES, QuerySettings, settings_for
+from pipeline.query.settings import QuerySettings, settings_for
 from pipeline.query.stage1 import TextFilter
 from pipeline.query.stage2 import ViewReranker
 from pipeline.query.steps import rank

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from pipeline.cli_common import OneLineParser, add_read_model_args, fail, float_range, int_range, positive_int
-from pipeline.query.settings import MODES
+from pipeline.query.modes import MODES
 from pipeline.threads import add_torch_threads_arg
 
 

@@ -22,7 +22,7 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.query.errors import QueryError
-from pipeline.query.settings import MODES
+from pipeline.query.modes import MODES
 from pipeline.serve.guard import GuardMiddleware
 from pipeline.serve.service import Busy, QueryService
 

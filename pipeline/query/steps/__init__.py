@@ -51,7 +51,7 @@ class Step:
         return self.run(state, **self.options)
 
 
-#: mode -> its steps, in order (the ``mode`` setting chooses; settings.MODES names the same keys)
+#: mode -> its steps, in order (the ``mode`` setting chooses; pipeline.query.modes.MODES names the same keys)
 STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "two-stage": (
         Step(shortlist.run),
