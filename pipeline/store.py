@@ -12,7 +12,9 @@ Every commit is one Delta transaction on one table. :meth:`Store.commit` writes 
 :data:`TABLE_ORDER` (upstream first, ``runs`` last); rows are keyed by (``mesh_id``, stage fingerprint)
 and the latest ``run_id`` per key wins, so a writer killed between two tables' commits leaves only work
 the next run redoes (or rows that readers dedupe). A reader pins each table's version when it first
-touches it; compaction never deletes the files of a pinned snapshot before the vacuum retention period.
+touches it, or all at once (:meth:`Store.pin`, :mod:`pipeline.snapshot`); compaction never deletes the
+files of a pinned snapshot before the vacuum retention period, nor while a reader lease holds it
+(:mod:`pipeline.leases`).
 One writer at a time (``_lock``); a second one gets a clear error.
 """
 
@@ -124,6 +126,7 @@ class Store:
         self._lock_fd: int | None = None
         self._tables: dict[str, object] = {}  # dataset -> DeltaTable (pinned at first use) or None
         self._files: dict[tuple[str, int], list[tuple[Path, int]]] = {}  # (dataset, version) -> files
+        self._pins: dict[str, int] | None = None  # dataset -> version read (see pin); None: latest
 
     # ----------------------------------------------------------------- opening
     @classmethod
@@ -204,6 +207,12 @@ class Store:
         else:
             self._tables.pop(dataset, None)
 
+    def pin(self, versions: dict[str, int]) -> None:
+        """Read every table at ``versions`` (dataset -> Delta version) from now on; a dataset not named
+        reads as absent. One consistent snapshot of the whole store (:mod:`pipeline.snapshot`)."""
+        self._pins = dict(versions)
+        self._tables.clear()
+
     # ----------------------------------------------------------------- tables
     def path_of(self, dataset: str) -> Path:
         return self.root / dataset
@@ -242,8 +251,11 @@ class Store:
         log = path / DELTA_LOG
         if not any(log.iterdir()):
             return None  # created, never committed (a writer killed before its first commit)
+        pinned = None if self._pins is None else self._pins.get(dataset)
+        if self._pins is not None and pinned is None:
+            return None  # the table did not exist yet in the pinned snapshot
         try:
-            dt = DeltaTable(str(path))
+            dt = DeltaTable(str(path), version=pinned)
         except Exception as exc:  # noqa: BLE001 - deltalake raises several error types
             raise corrupt(
                 self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})"

@@ -70,8 +70,9 @@ def test_sample_store_tabletop_photo(sample):
     check(store, REPO / "data" / "queries" / "tabletop.jsonl", GOLDEN / "sample_tabletop.json")
 
 
-def test_ycb78_labelled_photos():
+def test_ycb78_labelled_photos(monkeypatch):
     need_shared(SHARED_DATA / "photos")
+    monkeypatch.setenv("OSCAR_SHARED_DATA", str(SHARED_DATA))  # the query file's $OSCAR_SHARED_DATA paths
     if not (YCB78.parent / f"{YCB78.name}.done").exists():
         pytest.skip(f"the 78-mesh YCB store is not ready at {YCB78} (set OSCAR_YCB78_STORE)")
     check(YCB78, REPO / "data" / "queries" / "ycb_photos.jsonl", GOLDEN / "ycb78_photos.json", light=True)

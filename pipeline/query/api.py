@@ -12,7 +12,10 @@ reuse one embedding. A ``Retriever`` only opens the store and the models and han
 A ``Retriever`` is thread-safe: stage 1 borrows a DuckDB connection per call, models are built once under a
 lock, and the adapters and stage 2 only read shared state. It answers from the store state it opened;
 :meth:`Retriever.reopened` gives one on the latest commits that shares the loaded models (what the HTTP
-service does when :func:`pipeline.query.library.store_version` changes).
+service does when :func:`pipeline.query.library.store_version` changes). The state is one consistent
+snapshot of every table (:mod:`pipeline.snapshot`), leased in the store while open (:mod:`pipeline.leases`)
+so that ``compact`` spares its files; a query that still meets a vanished file reloads the newest snapshot
+in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = False`` turns that off).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding, query_profile, store_version
 from pipeline.query.models import QueryModels, roles_for
 from pipeline.query.modes import MODES
+from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import QuerySettings, settings_for
@@ -49,6 +53,11 @@ class Retriever:
         self.models = QueryModels(profile, device, models)
         self.model, self.load_seconds = self.models.get, self.models.load_seconds
         self.version = None  # store version this state was read at (set by open)
+        self.versions: dict[str, int] = store.versions()  # the snapshot read (pinned at open)
+        self.lease = None  # this reader's lease in the store (set by open)
+        self.recover = True  # reload and retry once when a query meets a vanished file
+        self.generation = 0  # bumped by each reload in place
+        self._gate = Gate()
         self.open_args: dict = {}  # what open() was called with (reopened() repeats it)
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
@@ -58,7 +67,7 @@ class Retriever:
         )
         parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
         self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
-        self.mesh, self.candidate_views = tables.mesh, tables.candidate_views
+        self.mesh = tables.mesh
 
     @classmethod
     def open(
@@ -74,6 +83,7 @@ class Retriever:
         threads: int | None = None,
         settings_changes: dict | None = None,
         preload: bool = True,
+        lease: bool = True,
     ) -> Retriever:
         """Open ``store_path`` for queries with ``profile`` ("auto": the profile the store was onboarded with).
 
@@ -81,12 +91,44 @@ class Retriever:
         :func:`pipeline.models.registry.create_model` from the profile (detector and segmenter on first use).
         ``settings`` / ``settings_changes`` replace / adjust the profile's query defaults
         (:mod:`pipeline.query.settings`); ``use_cache`` reads and writes ``STORE/_cache/query``;
-        ``preload=False`` defers every model to its first use.
+        ``preload=False`` defers every model to its first use; ``lease=False`` opens without a reader
+        lease (compaction then spares this reader's files only through its retention period).
         """
-        from pipeline.store import Store
+        args = {k: v for k, v in locals().items() if k != "cls"}
+        try:
+            return cls._open(**args)
+        except Exception as exc:
+            if not vanished_file(exc, store_path):
+                raise
+        return cls._open(**args)  # compaction removed files while opening: once more, on its result
+
+    @classmethod
+    def _open(
+        cls,
+        store_path,
+        profile,
+        model_overrides,
+        device,
+        models,
+        *,
+        settings,
+        use_cache,
+        threads,
+        settings_changes,
+        preload,
+        lease,
+    ) -> Retriever:
+        from pipeline.leases import Lease
+        from pipeline.snapshot import open_snapshot
 
         version = store_version(store_path)  # read first: a commit racing the open is seen next time
-        store = Store.open(store_path)
+        held = Lease(store_path, "retriever") if lease else None
+        try:
+            store = open_snapshot(store_path, held)
+        except BaseException:
+            if held is not None:
+                held.release()
+            raise
         try:
             onboarding = latest_onboarding(store)
             prof = query_profile(onboarding, profile, model_overrides)
@@ -97,19 +139,24 @@ class Retriever:
             check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
-            r.version = version
-            r.open_args = {"store_path": store_path, "profile": prof.name, "model_overrides": model_overrides}
-            r.open_args |= {
+            r.version, r.lease = version, held
+            r.open_args = {
+                "store_path": store_path,
+                "profile": prof.name,
+                "model_overrides": model_overrides,
                 "device": device,
                 "settings": settings,
                 "use_cache": use_cache,
                 "threads": threads,
+                "lease": lease,
             }
             if preload:
                 r.load_models(r.required_roles())
             return r
         except BaseException:
             store.close()
+            if held is not None:
+                held.release()
             raise
 
     def __enter__(self) -> Retriever:
@@ -135,6 +182,8 @@ class Retriever:
         self.text_filter.close()
         self.tables.con.close()
         self.store.close()
+        if self.lease is not None:
+            self.lease.release()
 
     def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
         """Roles a query needs (:func:`pipeline.query.models.roles_for`) that this profile has."""
@@ -182,6 +231,7 @@ class Retriever:
         (:meth:`pipeline.query.steps.state.RankRequest.make`; ``None`` = the settings' value)."""
         return rank(self.ranking, emb, mode=mode, **knobs)
 
+    @recovering
     def query(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm", **knobs) -> QueryResult:
         """ROI, embedding and ranking (``knobs`` as :meth:`rank`'s) of one photo + prompt, with a per-part
         latency breakdown (model loading counted apart)."""
@@ -208,6 +258,11 @@ class Retriever:
         result.query |= {"profile": self.profile.name, "roi": roi.describe(), "embedding": emb.describe()}
         result.roi = roi  # for --explain; not serialised
         return result
+
+    @recovering
+    def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
+        """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
+        return self.tables.candidate_views(mesh_ids)
 
     @property
     def n_meshes(self) -> int:

@@ -154,6 +154,13 @@ class StoreTables:
             rel = self.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
 
+    @property
+    def versions(self) -> dict[str, int]:
+        """The table versions this state reads (one consistent snapshot, :mod:`pipeline.snapshot`). Derived
+        data of the query path (the embedding cache; a stage-1 vector index) is built from this pinned
+        store (``store.parts(dataset)``) and keyed on these versions, so a reload moves it with the rest."""
+        return self.store.versions()
+
     # ------------------------------------------------------------------ embeddings (cached)
     def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:
         """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``; from the

@@ -1,7 +1,8 @@
 """The HTTP API (FastAPI): routes, uploads, errors. See ``docs/serve.md``.
 
 Every answer is JSON; every error is ``{"error": "<one line>"}`` with a 4xx status (503/504 when busy or
-slow); an unexpected failure is logged with its traceback and answered 500 without one.
+slow; 503 also when the store changed under a query and its newest snapshot failed too); an unexpected
+failure is logged with its traceback and answered 500 without one.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from pipeline.query.errors import QueryError
+from pipeline.query.errors import QueryError, StoreUnavailable
 from pipeline.query.modes import MODES
 from pipeline.serve.guard import GuardMiddleware
 from pipeline.serve.service import Busy, QueryService
@@ -146,6 +147,10 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
     @app.exception_handler(Busy)
     async def _busy(_: Request, exc: Busy):
         return error(503, str(exc), {"Retry-After": "1"})
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_moved(_: Request, exc: StoreUnavailable):
+        return error(503, str(exc), {"Retry-After": "2"})
 
     @app.exception_handler(asyncio.TimeoutError)
     async def _timeout(_: Request, exc: Exception):

@@ -84,6 +84,15 @@ def _variables(items: list[str]) -> dict[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    leases: list = []
+    try:
+        return _main(argv, leases)
+    finally:
+        for lease in leases:
+            lease.release()
+
+
+def _main(argv: list[str] | None, leases: list) -> int:
     args = build_parser().parse_args(argv)
     from pipeline.cli_common import fail
     from pipeline.db import RemoteStore, audit_names, open_store
@@ -133,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return fail(str(exc))
     try:
+        _hold_lease(store, leases)
         con = connect(store)
     except StoreError as exc:
         return fail(str(exc))
@@ -183,3 +193,13 @@ def _exec_duckdb_cli(store) -> int:
         fh.write(init_script(store))
     os.execv(binary, [binary, "-init", path])
     return 0  # not reached
+
+
+def _hold_lease(store, leases: list) -> None:
+    """Pin a local store to a consistent snapshot leased until the session ends (added to ``leases``):
+    compaction spares what the session reads, however long it lasts (:mod:`pipeline.leases`)."""
+    from pipeline.snapshot import pin_and_lease
+
+    lease = pin_and_lease(store, "sql")
+    if lease is not None:
+        leases.append(lease)
