@@ -99,7 +99,7 @@ def capture(retriever, queries, tokens: dict[str, str], light: bool = False) -> 
     """Golden records of ``queries`` (pipeline.evaluate Query objects) on an open ``retriever``; ``light``:
     the ``segm`` ROI's rows that :func:`is_light` keeps only (the suite's check on a large store)."""
     from pipeline.evaluate.engine import Engine, Setting
-    from pipeline.query.settings import MODES
+    from pipeline.query.modes import MODES
     from pipeline.query.stage1 import FALLBACK_UNITS
 
     engine = Engine(retriever, str(retriever.store.root))

@@ -21,6 +21,7 @@ from pipeline.cli_common import (
     number_list,
     positive_int,
 )
+from pipeline.query.modes import MODES
 
 OFFLINE_NOTE = (
     "Offline profile: attribute captioner + MiniLM text encoder + classical image descriptor, no downloaded "
@@ -117,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_args(p)
     p.add_argument("--device", help="torch device for the paper profile (default: cuda when available)")
     base = p.add_argument_group("base setting")
-    base.add_argument("--mode", default="two-stage", choices=["two-stage", "text-only", "image-only"])
+    base.add_argument("--mode", default="two-stage", choices=MODES)
     base.add_argument(
         "--tau",
         type=float_range(-1.0, 1.0),

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from pipeline.cli_common import OneLineParser, add_read_model_args, fail, float_range, int_range, positive_int
+from pipeline.query.modes import MODES
 from pipeline.threads import add_torch_threads_arg
 
 
@@ -42,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument(
         "--mode",
         default="two-stage",
-        choices=["two-stage", "text-only", "image-only"],
+        choices=MODES,
         help="paper ablations",
     )
     how.add_argument(

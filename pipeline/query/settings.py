@@ -14,8 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from pipeline.query.modes import MODES as MODES  # re-exported: the settings name the modes
+
 GRAY = (205, 205, 205)
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 

@@ -23,12 +23,12 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.query.errors import QueryError, StoreUnavailable
+from pipeline.query.modes import MODES
 from pipeline.serve.guard import GuardMiddleware
 from pipeline.serve.service import Busy, QueryService
 
 log = logging.getLogger("pipeline.serve")
 
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 

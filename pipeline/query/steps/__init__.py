@@ -49,15 +49,11 @@ class Step:
     run: Callable[..., RankState]
     options: dict = field(default_factory=dict)
 
-    @property
-    def name(self) -> str:
-        return self.run.__module__.rsplit(".", 1)[-1]
-
     def __call__(self, state: RankState) -> RankState:
         return self.run(state, **self.options)
 
 
-#: mode -> its steps, in order (the ``mode`` setting chooses; settings.MODES names the same keys)
+#: mode -> its steps, in order (the ``mode`` setting chooses; pipeline.query.modes.MODES names the same keys)
 STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "two-stage": (
         Step(shortlist.run),
