@@ -75,6 +75,8 @@ def result_record(res) -> dict:
     """A QueryResult without timings, plus its view-level ranking (exact arrays)."""
     d = res.to_dict()
     d.pop("timings_ms", None)
+    for key in ("accepted", "confidence", "accept_threshold", "acceptance"):  # the open-set verdict: a
+        d.pop(key, None)  # calibrated layer on top of the ranking (tests/test_openset.py), not the ranking
     d["timing_keys"] = sorted(res.timings)
     vr = res.view_ranking
     if vr is not None:
@@ -97,7 +99,7 @@ def capture(retriever, queries, tokens: dict[str, str], light: bool = False) -> 
     """Golden records of ``queries`` (pipeline.evaluate Query objects) on an open ``retriever``; ``light``:
     the ``segm`` ROI's rows that :func:`is_light` keeps only (the suite's check on a large store)."""
     from pipeline.evaluate.engine import Engine, Setting
-    from pipeline.query.settings import MODES
+    from pipeline.query.modes import MODES
     from pipeline.query.stage1 import FALLBACK_UNITS
 
     engine = Engine(retriever, str(retriever.store.root))

@@ -72,7 +72,7 @@ def _run(
         summary = _status(engine and engine.summary or summary, "failed", engine)
         raise
     finally:
-        config = spec.describe()
+        config = {**spec.describe(), "cluster": summary.cluster()}
         if summary.removal_guard:
             config["removal_guard"] = {**config["removal_guard"], **summary.removal_guard}
         row = {

@@ -1,12 +1,13 @@
-"""The Python API of the query path; the CLI is a thin wrapper around it.
+"""The Python API of the query path; the CLI, batch mode, the service and the evaluation wrap it.
 
 >>> from pipeline.query import Retriever
 >>> with Retriever.open("data/store", profile="offline") as r:
 ...     result = r.query("photo.jpg", "the yellow mustard bottle", box=(120, 40, 260, 300))
 ...     print(result.best.name)
 
-``make_roi`` -> ``embed`` -> ``rank`` are the three steps of ``query``; ``rank`` calls no model, so sweeps
-over tau, fallback-k, prompt weight or mode reuse one embedding.
+``make_roi`` -> ``embed`` -> ``rank`` are the three parts of ``query``. ``rank`` runs the mode's step list
+(:mod:`pipeline.query.steps`) and calls no model, so sweeps over tau, fallback-k, prompt weight or mode
+reuse one embedding. A ``Retriever`` only opens the store and the models and hands them to the steps.
 
 A ``Retriever`` is thread-safe: stage 1 borrows a DuckDB connection per call, models are built once under a
 lock, and the adapters and stage 2 only read shared state. It answers from the store state it opened;
@@ -19,18 +20,18 @@ in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = 
 
 from __future__ import annotations
 
-import threading
 import time
-from collections.abc import Iterable
 
 from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
-from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
+from pipeline.query.library import StoreTables, check_models, latest_onboarding, query_profile, store_version
+from pipeline.query.models import QueryModels, roles_for
+from pipeline.query.modes import MODES
 from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
-from pipeline.query.settings import MODES, QuerySettings, settings_for
+from pipeline.query.settings import QuerySettings, settings_for
 from pipeline.query.stage2 import ViewReranker
 from pipeline.query.steps import rank
 from pipeline.query.steps.state import RankContext
@@ -43,24 +44,20 @@ class Retriever:
     def __init__(
         self, store, profile, tables: StoreTables, settings: QuerySettings, *, device, models, threads
     ):
-        self.store = store
-        self.profile = profile
-        self.tables = tables
-        self.settings = settings
-        self.device = device
+        from pipeline.localfeat.config import VerifyConfig
+
+        self.store, self.profile, self.tables = store, profile, tables
+        self.settings, self.device = settings, device
         self.strategy = strategy_for(profile.clip_image_encoder is not None)
-        self.load_seconds: dict[str, float] = {}
-        self._models: dict[str, object] = dict(models or {})
-        self._model_lock = threading.Lock()
-        # tables.con (candidate_views, mesh lookups) runs one statement at a time
-        self._db_lock = threading.Lock()
+        self.models = QueryModels(profile, device, models)
+        self.model, self.load_seconds = self.models.get, self.models.load_seconds
         self.version = None  # store version this state was read at (set by open)
         self.versions: dict[str, int] = store.versions()  # the snapshot read (pinned at open)
         self.lease = None  # this reader's lease in the store (set by open)
         self.recover = True  # reload and retry once when a query meets a vanished file
         self.generation = 0  # bumped by each reload in place
         self._gate = Gate()
-        self._open_args: dict = {}
+        self.open_args: dict = {}  # what open() was called with (reopened() repeats it)
         from pipeline.index.choose import open_stage1  # exact scan or the vector index (--stage1)
 
         try:
@@ -68,24 +65,15 @@ class Retriever:
         except ValueError as exc:
             raise QueryError(str(exc)) from None
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
-        from pipeline.localfeat.config import VerifyConfig
-
+        cfg = VerifyConfig(top=settings.verify_top, weight=settings.verify_weight)
         self.verifier = LocalVerifier(
-            store,
-            tables.onboarding,
-            tables.meshes.column("mesh_id").to_pylist(),
-            VerifyConfig(top=settings.verify_top, weight=settings.verify_weight),
+            store, tables.onboarding, tables.meshes.column("mesh_id").to_pylist(), cfg
         )
-        self.ranking = RankContext.from_meshes(
-            tables.meshes,
-            text_filter=self.text_filter,
-            reranker=self.reranker,
-            verifier=self.verifier,
-            settings=settings,
-        )
-        self._mesh_id = self.ranking.mesh_id
+        parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
+        self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
+        self.mesh = tables.mesh
+        self._init_acceptance()
 
-    # ------------------------------------------------------------------ opening
     @classmethod
     def open(
         cls,
@@ -136,7 +124,6 @@ class Retriever:
         lease,
     ) -> Retriever:
         from pipeline.leases import Lease
-        from pipeline.profiles import PROFILES, get_profile
         from pipeline.snapshot import open_snapshot
 
         version = store_version(store_path)  # read first: a commit racing the open is seen next time
@@ -149,12 +136,7 @@ class Retriever:
             raise
         try:
             onboarding = latest_onboarding(store)
-            if profile in (None, "", "auto"):
-                profile = onboarding.profile if onboarding.profile in PROFILES else "offline"
-            try:
-                prof = get_profile(profile, model_overrides)
-            except ValueError as exc:
-                raise QueryError(str(exc)) from None
+            prof = query_profile(onboarding, profile, model_overrides)
             settings = (settings or settings_for(prof.name)).with_changes(**(settings_changes or {}))
             strategy = strategy_for(prof.clip_image_encoder is not None)
             # the caption and view spaces must match even for roles this query does not load
@@ -162,9 +144,8 @@ class Retriever:
             check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
-            r.version = version
-            r.lease = held
-            r._open_args = {
+            r.version, r.lease = version, held
+            r.open_args = {
                 "store_path": store_path,
                 "profile": prof.name,
                 "model_overrides": model_overrides,
@@ -192,10 +173,8 @@ class Retriever:
     def reopened(self, *, preload: bool = True) -> Retriever:
         """A new Retriever on the store's latest commits, with the same settings and the already loaded
         models (no model is loaded twice). This one stays usable until closed."""
-        with self._model_lock:
-            models = dict(self._models)
-        r = Retriever.open(**self._open_args, models=models, preload=False)
-        r.load_seconds = dict(self.load_seconds)
+        r = Retriever.open(**self.open_args, models=self.models.snapshot(), preload=False)
+        r.load_seconds.update(self.load_seconds)
         if preload:
             r.load_models(r.required_roles())
         return r
@@ -211,42 +190,16 @@ class Retriever:
         if self.lease is not None:
             self.lease.release()
 
-    # ------------------------------------------------------------------ models
     def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
-        """Roles a query needs: the embedding roles, plus what finds the object when it comes from
-        ``source`` ("detector": detector and segmenter; "box": segmenter; "mask" or None: nothing more)."""
-        roles = list(self.strategy.roles(self.settings.prompt_weight > 0))
-        if source == "detector":
-            roles.append("detector")
-        if source in ("detector", "box") and roi_mode == "segm":
-            roles.append("segmenter")
-        return [r for r in roles if r in self._models or getattr(self.profile, r, None) is not None]
+        """Roles a query needs (:func:`pipeline.query.models.roles_for`) that this profile has."""
+        return self.models.available(
+            roles_for(self.strategy.roles(self.settings.prompt_weight > 0), source, roi_mode)
+        )
 
-    def load_models(self, roles: Iterable[str]) -> None:
+    def load_models(self, roles) -> None:
         """Build the adapters of ``roles`` now (not yet loaded ones only)."""
-        for role in roles:
-            self.model(role)
+        self.models.load(roles)
 
-    def model(self, role: str):
-        """The adapter of ``role`` (built on first use), or ``None`` when the profile has no such role."""
-        if role in self._models:
-            return self._models[role]
-        spec = getattr(self.profile, role, None)
-        if spec is None:
-            return None
-        from pipeline.models.registry import create_model
-
-        with self._model_lock:  # concurrent first uses build the model once
-            if role in self._models:
-                return self._models[role]
-            extra = {} if self.device in (None, "", "auto") else {"device": self.device}
-            t0 = time.perf_counter()
-            adapter = create_model(role, spec, **extra)
-            self.load_seconds[role] = time.perf_counter() - t0
-            self._models[role] = adapter
-        return adapter
-
-    # ------------------------------------------------------------------ steps
     def make_roi(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm") -> Roi:
         """Validate the inputs and cut the prompted object out of ``image`` (path, PIL image or array)."""
         s = self.settings
@@ -254,6 +207,7 @@ class Retriever:
         photo = load_photo(image, max_side=s.max_side, min_side=s.min_side)
         box_v = parse_box(box) if box is not None else None
         mask_v = load_mask(mask, photo, s.min_roi_side) if mask is not None else None
+        opts = {"background": s.background, "min_side": s.min_roi_side, "box_segmenter": s.box_segmenter}
         roi = make_roi(
             photo,
             prompt,
@@ -261,10 +215,8 @@ class Retriever:
             mask=mask_v,
             roi_mode=roi_mode,
             model=self.model,
-            background=s.background,
-            min_side=s.min_roi_side,
             profile=self.profile.name,
-            box_segmenter=s.box_segmenter,
+            **opts,
         )
         roi.notes.extend([] if photo.scale == 1.0 else [f"image downscaled by {photo.scale:.3f}"])
         roi.photo_source, roi.photo_size = photo.source, photo.original_size
@@ -273,65 +225,24 @@ class Retriever:
     def embed(self, roi: Roi, prompt: str) -> QueryEmbedding:
         """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
-        with_prompt = self.settings.prompt_weight > 0
-        emb = embed_roi(self.strategy, self.model, roi, prompt, with_prompt)
+        emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
         if self.settings.verify and self.verifier.available:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb
 
-    def rank(
-        self,
-        emb: QueryEmbedding,
-        mode: str | None = None,
-        threshold: float | None = None,
-        fallback_k: int = 10,
-        top: int = 5,
-        prompt_weight: float | None = None,
-        fallback_unit: str | None = None,
-        views: bool = False,
-        verify: bool | None = None,
-    ) -> QueryResult:
-        """Rank the store's models for ``emb`` with the mode's step list (:mod:`pipeline.query.steps`; no
-        model calls: cheap enough for parameter sweeps). ``None`` = the settings' value.
-
-        ``fallback_unit``: what ``fallback_k`` counts when nothing passes tau, ``"captions"`` (the paper's:
-        the top-k caption rows kept as their distinct models) or ``"meshes"``.
-        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses.
-        ``verify`` re-ranks the top candidates with local features when the embedding carries the ROI's
-        keypoints; inlier counts are cached on ``emb``.
-        """
-        return rank(
-            self.ranking,
-            emb,
-            mode=mode,
-            threshold=threshold,
-            fallback_k=fallback_k,
-            top=top,
-            prompt_weight=prompt_weight,
-            fallback_unit=fallback_unit,
-            views=views,
-            verify=verify,
-        )
+    def rank(self, emb: QueryEmbedding, mode: str | None = None, **knobs) -> QueryResult:
+        """Rank the store's models for ``emb`` with the mode's step list (no model calls). ``knobs``:
+        ``threshold``, ``fallback_k``, ``top``, ``prompt_weight``, ``fallback_unit``, ``views``, ``verify``
+        (:meth:`pipeline.query.steps.state.RankRequest.make`; ``None`` = the settings' value)."""
+        return rank(self.ranking, emb, mode=mode, **knobs)
 
     @recovering
-    def query(
-        self,
-        image,
-        prompt: str,
-        box=None,
-        mask=None,
-        roi_mode: str = "segm",
-        mode: str | None = None,
-        threshold: float | None = None,
-        fallback_k: int = 10,
-        top: int = 5,
-        prompt_weight: float | None = None,
-        fallback_unit: str | None = None,
-        verify: bool | None = None,
-    ) -> QueryResult:
-        """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
-        if mode is not None and mode not in MODES:
-            raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    def query(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm", **knobs) -> QueryResult:
+        """ROI, embedding and ranking (``knobs`` as :meth:`rank`'s) of one photo + prompt, with a per-part
+        latency breakdown (model loading counted apart)."""
+        if knobs.get("mode") is not None and knobs["mode"] not in MODES:
+            raise QueryError(f"unknown mode {knobs['mode']!r}; choose from {', '.join(MODES)}")
+        self._check_accept_threshold(knobs.get("accept_threshold"))
         loaded = sum(self.load_seconds.values())
         t0 = time.perf_counter()
         roi = self.make_roi(image, prompt, box=box, mask=mask, roi_mode=roi_mode)
@@ -340,56 +251,48 @@ class Retriever:
         emb = self.embed(roi, prompt)
         t2 = time.perf_counter()
         load_emb = sum(self.load_seconds.values()) - loaded - load_roi
-        result = self.rank(emb, mode, threshold, fallback_k, top, prompt_weight, fallback_unit, verify=verify)
-        t3 = time.perf_counter()
+        result = self.rank(emb, **knobs)
         result.timings = {
             "model_load_ms": (load_roi + load_emb) * 1000,
             "roi_ms": (t1 - t0 - load_roi) * 1000,
             "embed_ms": (t2 - t1 - load_emb) * 1000,
             **result.timings,
-            "total_ms": (t3 - t0) * 1000,
+            "total_ms": (time.perf_counter() - t0) * 1000,
         }
-        result.query = {
-            "image": roi.photo_source,
-            "image_size": list(roi.photo_size),
-            "prompt": clean_prompt(prompt, self.settings.max_prompt_chars),
-            "profile": self.profile.name,
-            "roi": roi.describe(),
-            "embedding": emb.describe(),
-        }
+        prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
+        result.query = {"image": roi.photo_source, "image_size": list(roi.photo_size), "prompt": prompt}
+        result.query |= {"profile": self.profile.name, "roi": roi.describe(), "embedding": emb.describe()}
         result.roi = roi  # for --explain; not serialised
         return result
 
-    # ------------------------------------------------------------------ store lookups
-    @property
-    def n_meshes(self) -> int:
-        return len(self._mesh_id)
+    # ------------------------------------------------------------------ open-set acceptance
+    def _init_acceptance(self) -> None:
+        """The profile's acceptance calibration (pipeline.query.accept) and whether it fits this store."""
+        from pipeline.query.accept import CalibrationError, load_calibration
 
-    @property
-    def mesh_ids(self) -> list[str]:
-        """Active mesh ids in ``mesh_idx`` order (what a :class:`ViewRanking`'s ``mesh_idx`` indexes)."""
-        return self._mesh_id
+        try:
+            self.calibration = load_calibration(self.profile.name, self.settings.accept_model)
+        except CalibrationError as exc:
+            raise QueryError(str(exc)) from None
+        models = self.tables.onboarding.models
+        self.calibration_mismatch = None if self.calibration is None else self.calibration.mismatch(models)
+        self.ranking.calibration = self.calibration
+        self.ranking.calibration_mismatch = self.calibration_mismatch
 
-    def mesh(self, mesh_id: str) -> dict:
-        """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
-        if not hasattr(self, "_row_of"):
-            self._row_of = {m: j for j, m in enumerate(self._mesh_id)}
-        j = self._row_of.get(mesh_id)
-        if j is None:
-            raise QueryError(f"no active mesh {mesh_id!r} in this store")
-        return self.tables.meshes.slice(j, 1).to_pylist()[0]
+    def _check_accept_threshold(self, value) -> None:
+        if value is not None and not 0.0 <= float(value) <= 1.0:
+            raise QueryError(f"accept threshold must be within [0, 1], got {value}")
 
     @recovering
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
         """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
-        from pipeline.db import load_sql
+        return self.tables.candidate_views(mesh_ids)
 
-        fps = self.tables.onboarding.fingerprints
-        params = {
-            "mesh_ids": list(mesh_ids),
-            "render_fingerprint": fps["render"],
-            "caption_fingerprint": fps["caption"],
-        }
-        with self._db_lock:
-            rel = self.tables.con.sql(load_sql("candidate_views"), params=params)
-            return rel.to_arrow_table().to_pylist()
+    @property
+    def n_meshes(self) -> int:
+        return self.ranking.n_meshes
+
+    @property
+    def mesh_ids(self) -> list[str]:
+        """Active mesh ids in ``mesh_idx`` order (what a :class:`ViewRanking`'s ``mesh_idx`` indexes)."""
+        return self.ranking.mesh_id

@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from pipeline.cli_common import OneLineParser, add_read_model_args, fail, float_range, int_range, positive_int
+from pipeline.query.modes import MODES
 from pipeline.threads import add_torch_threads_arg
 
 
@@ -42,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument(
         "--mode",
         default="two-stage",
-        choices=["two-stage", "text-only", "image-only"],
+        choices=MODES,
         help="paper ablations",
     )
     how.add_argument(
@@ -85,6 +86,19 @@ def build_parser() -> argparse.ArgumentParser:
         type=int_range(0, 1000),
         metavar="N",
         help="candidates verified by local features, 0..1000 (default 20)",
+    )
+    how.add_argument(
+        "--accept-threshold",
+        type=float_range(0.0, 1.0),
+        metavar="P",
+        help="open-set operating point: accept the best model when its confidence is at least P "
+        "(default: the calibration's; docs/query.md, Open-set answers)",
+    )
+    how.add_argument(
+        "--accept-model",
+        metavar="CALIBRATION.json",
+        help="acceptance calibration (default: the one shipped for the profile; written by "
+        "`python -m pipeline.evaluate openset`)",
     )
     how.add_argument(
         "--top", type=positive_int, default=5, metavar="N", help="how many models to list (default 5)"
@@ -208,6 +222,7 @@ def _run(args: argparse.Namespace) -> int:
         "prompt_weight": args.prompt_weight,
         "verify": args.verify,
         "verify_top": args.verify_top,
+        "accept_model": args.accept_model,
     }
     retriever = open_retriever(args, settings_changes=settings_changes)
     rank_args = {
@@ -217,6 +232,7 @@ def _run(args: argparse.Namespace) -> int:
         "fallback_k": args.fallback_k,
         "fallback_unit": args.fallback_unit,
         "top": args.top,
+        "accept_threshold": args.accept_threshold,
     }
     with retriever:
         if args.queries:

@@ -28,7 +28,7 @@ _VANISHED = re.compile(
     re.IGNORECASE,
 )
 #: Retriever attributes that survive a reload in place (the models, the settings, the gate itself)
-KEPT = frozenset({"_models", "_model_lock", "load_seconds", "_gate", "generation", "recover", "_open_args"})
+KEPT = frozenset({"models", "model", "load_seconds", "_gate", "generation", "recover", "open_args"})
 
 
 def vanished_file(exc: BaseException | None, root: str | os.PathLike | None = None) -> bool:

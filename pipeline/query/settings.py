@@ -14,8 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from pipeline.query.modes import MODES as MODES  # re-exported: the settings name the modes
+
 GRAY = (205, 205, 205)
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 
@@ -39,6 +40,8 @@ class QuerySettings:
     verify_top: int = 20  # candidates verified (by global score)
     verify_weight: float = 0.3  # weight of the inlier term in the fused score
     stage1: str = "auto"  # "exact" | "index" | "auto" (index from 1M caption rows): pipeline.index.choose
+    accept_threshold: float | None = None  # open-set operating point (None: the calibration's default)
+    accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})

@@ -23,12 +23,12 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.query.errors import QueryError, StoreUnavailable
+from pipeline.query.modes import MODES
 from pipeline.serve.guard import GuardMiddleware
 from pipeline.serve.service import Busy, QueryService
 
 log = logging.getLogger("pipeline.serve")
 
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 
@@ -74,6 +74,9 @@ class RankOptions(BaseModel):
     roi: str = Field("segm", description="segm: object on gray (paper); bbox: raw box crop")
     threshold: float | None = Field(None, description="stage-1 tau (default: the profile's)")
     fallback_k: int = Field(10, ge=1, le=1000, description="stage-1 top-k when nothing passes tau")
+    accept_threshold: float | None = Field(
+        None, ge=0.0, le=1.0, description="open-set operating point (default: the server's)"
+    )
 
 
 class BatchItem(BaseModel):
@@ -109,6 +112,7 @@ def run_query(retriever, image, prompt, box, mask, opts: RankOptions, name: str 
         threshold=opts.threshold,
         fallback_k=opts.fallback_k,
         top=opts.top,
+        accept_threshold=opts.accept_threshold,
     )
     if name:
         result.query["image"] = name
@@ -187,8 +191,16 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
         roi: Annotated[str, Form()] = "segm",
         threshold: Annotated[float | None, Form()] = None,
         fallback_k: Annotated[int, Form(ge=1, le=1000)] = 10,
+        accept_threshold: Annotated[float | None, Form(ge=0.0, le=1.0)] = None,
     ):
-        opts = RankOptions(top=top, mode=mode, roi=roi, threshold=threshold, fallback_k=fallback_k)
+        opts = RankOptions(
+            top=top,
+            mode=mode,
+            roi=roi,
+            threshold=threshold,
+            fallback_k=fallback_k,
+            accept_threshold=accept_threshold,
+        )
         check_options(opts)
         photo = decode_image(await image.read(), "image", limits.max_pixels)
         mask_img = None

@@ -1,5 +1,6 @@
--- runs: one row per onboarding run, newest first, with its status, duration, per-stage seconds and what the
--- removal guard saw (active files before the run, how many vanished, the limit, whether it stopped the run).
+-- runs: one row per onboarding run, newest first, with its status, duration, per-stage seconds, what the
+-- removal guard saw (active files before the run, how many vanished, the limit, whether it stopped the run),
+-- and the Ray nodes it lost and the meshes it redid (from the cluster entry of config_json).
 CREATE OR REPLACE VIEW runs AS
 SELECT
     CAST(run_id AS VARCHAR) AS run_id,
@@ -16,7 +17,9 @@ SELECT
     CAST(n_skipped AS BIGINT) AS n_skipped,
     CAST(n_failed AS BIGINT) AS n_failed,
     CAST(stage_seconds_json AS JSON) AS stage_seconds,
-    CAST(json_extract(config_json, '$.removal_guard') AS JSON) AS removal_guard
+    CAST(json_extract(config_json, '$.removal_guard') AS JSON) AS removal_guard,
+    CAST(json_extract(config_json, '$.cluster.lost_nodes') AS VARCHAR[]) AS lost_nodes,
+    CAST(json_extract(config_json, '$.cluster.meshes_redone') AS BIGINT) AS n_redone
 FROM runs_all
 ORDER BY run_id DESC;
 
@@ -36,3 +39,5 @@ COMMENT ON COLUMN runs.n_skipped IS 'meshes with nothing left to do';
 COMMENT ON COLUMN runs.n_failed IS 'meshes or files that failed in this run';
 COMMENT ON COLUMN runs.stage_seconds IS 'seconds per stage as JSON';
 COMMENT ON COLUMN runs.removal_guard IS 'the removal guard: active files before the run, vanished, share, max_removed, allow_removal, tripped';
+COMMENT ON COLUMN runs.lost_nodes IS 'Ray nodes lost during the run, as IP (node id prefix); empty for none, NULL before this was recorded';
+COMMENT ON COLUMN runs.n_redone IS 'meshes re-submitted after their batch was lost with a node or worker (not failed)';

@@ -52,6 +52,8 @@ class RunSummary:
     removal_guard: dict = field(default_factory=dict)  # the guard's record (pipeline.onboard.guard)
     guard_line: str = ""
     warnings: list[str] = field(default_factory=list)
+    lost_nodes: list[str] = field(default_factory=list)  # Ray nodes lost during the run
+    redone: int = 0  # meshes re-submitted after their batch was lost (a lost node, a crashed worker)
 
     def to_dict(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "guard_line"}
@@ -70,8 +72,20 @@ class RunSummary:
             ),
             f"rendered {self.rendered} meshes, captioned {self.captioned}; {self.total_seconds:.1f}s total "
             f"({rate:.2f} meshes/s); {stages}",
-        ]
+        ] + self.cluster_lines()
         return lines + ([self.guard_line] if self.guard_line else [])
+
+    def cluster_lines(self) -> list[str]:
+        """What the cluster lost and what was redone (nothing when nothing was lost)."""
+        if not (self.lost_nodes or self.redone):
+            return []
+        nodes = ", ".join(self.lost_nodes)
+        lost = f"lost Ray node(s) {nodes}" if nodes else "lost Ray worker(s), no node"
+        return [f"{lost}: {self.redone} meshes redone on the surviving workers (not counted as failed)"]
+
+    def cluster(self) -> dict:
+        """The ``cluster`` entry of the run's ``runs`` row."""
+        return {"lost_nodes": list(self.lost_nodes), "meshes_redone": self.redone}
 
 
 class Timer:

@@ -14,6 +14,7 @@ service and the evaluation sweeps, all rank here; no step calls a model, so re-r
 ``stage2``        view-encoder scores and best views (``image`` channel, per-view scores)
 ``fuse``          order by score channels
 ``verify``        local-feature inliers of the top candidates fused into their score (``inliers``, ``fused``)
+``acceptance``    the open-set verdict: calibrated ``confidence`` and ``accepted`` (pipeline.query.accept)
 ``candidates``    the top of the order as result records
 ``view_ranking``  the view-level ranking of stage 2 (paper mAP@k), on request
 ``caption_ranking``  text-only's caption-level ranking, on request
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.steps import (
+    acceptance,
     all_models,
     candidates,
     caption_ranking,
@@ -47,27 +49,25 @@ class Step:
     run: Callable[..., RankState]
     options: dict = field(default_factory=dict)
 
-    @property
-    def name(self) -> str:
-        return self.run.__module__.rsplit(".", 1)[-1]
-
     def __call__(self, state: RankState) -> RankState:
         return self.run(state, **self.options)
 
 
-#: mode -> its steps, in order (the ``mode`` setting chooses; settings.MODES names the same keys)
+#: mode -> its steps, in order (the ``mode`` setting chooses; pipeline.query.modes.MODES names the same keys)
 STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "two-stage": (
         Step(shortlist.run),
         Step(stage2.run),
         Step(fuse.run, {"by": ("image", "text")}),
         Step(verify.run),
+        Step(acceptance.run),
         Step(candidates.run),
         Step(view_ranking.run),
     ),
     "text-only": (
         Step(top_text.run),
         Step(stage2.run, {"per_view": False}),
+        Step(acceptance.run, {"key": "text"}),
         Step(candidates.run),
         Step(caption_ranking.run),
     ),
@@ -76,6 +76,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(stage2.run),
         Step(fuse.run, {"by": ("image",)}),
         Step(verify.run),
+        Step(acceptance.run),
         Step(candidates.run),
         Step(view_ranking.run),
     ),

@@ -34,6 +34,7 @@ class RankRequest:
     fallback_unit: str
     views: bool = False
     verify: bool = False
+    accept_threshold: float | None = None  # open-set operating point (None: the calibration's)
 
     @classmethod
     def make(
@@ -49,6 +50,7 @@ class RankRequest:
         fallback_unit: str | None = None,
         views: bool = False,
         verify: bool | None = None,
+        accept_threshold: float | None = None,
     ) -> RankRequest:
         """The request for ``emb`` (``None`` = the settings' value); a bad knob is a :class:`QueryError`."""
         mode = settings.mode if mode is None else mode
@@ -68,7 +70,11 @@ class RankRequest:
                 "this embedding has no prompt vector: open the Retriever with a prompt weight > 0"
             )
         on = settings.verify if verify is None else bool(verify)
-        return cls(mode, tau, int(fallback_k), int(top), w, unit, bool(views), on)
+        accept = getattr(settings, "accept_threshold", None) if accept_threshold is None else accept_threshold
+        if accept is not None and not 0.0 <= float(accept) <= 1.0:
+            raise QueryError(f"accept threshold must be within [0, 1], got {accept}")
+        accept = None if accept is None else float(accept)
+        return cls(mode, tau, int(fallback_k), int(top), w, unit, bool(views), on, accept)
 
 
 @dataclass
@@ -83,6 +89,8 @@ class RankContext:
     name: list[str]
     source_path: list[str]
     library_root: list[str | None]
+    calibration: Any = None  # pipeline.query.accept.Calibration of the open-set verdict (None: none)
+    calibration_mismatch: str | None = None  # why the calibration does not apply to this store
 
     @classmethod
     def from_meshes(cls, meshes, **parts) -> RankContext:
@@ -117,6 +125,7 @@ class RankState:
     decided_by: str | None = None
     candidates: list[Candidate] = field(default_factory=list)  # the ranked records (top of ``order``)
     view_ranking: ViewRanking | None = None
+    verdict: Any = None  # pipeline.query.accept.Verdict (the acceptance step)
     notes: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)  # milliseconds per step
 
@@ -137,6 +146,7 @@ class RankState:
         )
         out.view_ranking = self.view_ranking
         out.notes = list(self.notes)
+        out.verdict = self.verdict
         return out
 
 
