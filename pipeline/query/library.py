@@ -113,15 +113,29 @@ class StoreTables:
             raise QueryError(f"store {store.root} has no caption embeddings: re-run onboarding")
         self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"], slice_layout)
         self.views = self._embeddings("view", self.view_dataset, fps["embed_image:view_encoder"])
+        self.learned_views = self._learned_views()
         if self.captions.num_rows == 0:
             raise QueryError(
                 f"store {store.root} has no caption embeddings for its active meshes: re-run onboarding"
             )
 
+    def _learned_views(self) -> pa.Table | None:
+        """The learned encoder's view table (``None`` when the store was onboarded without one)."""
+        key = self.onboarding.models.get("learned_encoder")
+        fp = self.onboarding.fingerprints.get("embed_image:learned_encoder")
+        if not key or not fp:
+            return None
+        dataset = f"image_embeddings/{slug(key)}"
+        if self.store.dataset(dataset) is None:
+            return None
+        table = self._embeddings("learned", dataset, fp, sql="view")
+        return table if table.num_rows else None
+
     # ------------------------------------------------------------------ embeddings (cached)
-    def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:
-        """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``; from the
-        incremental cache (:mod:`pipeline.query.cache`) for tables of at least ``CACHE_MIN_ROWS`` rows."""
+    def _embeddings(self, kind: str, dataset: str, fp: str, layout=None, sql: str | None = None) -> pa.Table:
+        """The rows of ``dataset`` a query uses (``query_<sql or kind>_embeddings.sql``), in ``layout``; from
+        the incremental cache (:mod:`pipeline.query.cache`) for tables of at least ``CACHE_MIN_ROWS`` rows."""
+        sql = sql or kind
         dt = self.store.delta(dataset)
         n_rows = 0
         if dt is not None:
@@ -129,20 +143,18 @@ class StoreTables:
             n_rows = sum(x or 0 for x in add.column("num_records").to_pylist())
         if self.use_cache and n_rows >= CACHE_MIN_ROWS:
             try:
-                return self._cached(kind, dataset, fp, layout)
+                return self._cached(kind, dataset, fp, layout, sql)
             except OSError:
                 pass  # read-only or full disk: queries still work, uncached
         d = self.store.dataset(dataset)
         if d is None:
             return pa.table({"mesh_idx": pa.array([], pa.int32()), "view_index": pa.array([], pa.int16())})
-        self.con.register(f"query_{kind}_source", d)
-        table = self.con.sql(
-            load_sql(f"query_{kind}_embeddings"), params={"fingerprint": fp}
-        ).to_arrow_table()
-        self.con.unregister(f"query_{kind}_source")
+        self.con.register(f"query_{sql}_source", d)
+        table = self.con.sql(load_sql(f"query_{sql}_embeddings"), params={"fingerprint": fp}).to_arrow_table()
+        self.con.unregister(f"query_{sql}_source")
         return layout(table) if layout is not None else table.combine_chunks()
 
-    def _cached(self, kind: str, dataset: str, fp: str, layout) -> pa.Table:
+    def _cached(self, kind: str, dataset: str, fp: str, layout, sql: str) -> pa.Table:
         from pipeline.query.cache import SegmentCache
 
         key = fingerprint(
@@ -150,7 +162,7 @@ class StoreTables:
                 "kind": kind,
                 "dataset": dataset,
                 "fp": fp,
-                "sql": load_sql(f"query_{kind}_embeddings") + load_sql("query_active_meshes"),
+                "sql": load_sql(f"query_{sql}_embeddings") + load_sql("query_active_meshes"),
                 "layout": (getattr(layout, "__name__", None), SLICES),
                 "format": 2,
             }
