@@ -25,7 +25,8 @@ import numpy as np
 from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
-from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
+from pipeline.query.fusion import FusionWeights, fuse
+from pipeline.query.library import StoreTables, check_learned, check_models, latest_onboarding, store_version
 from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
@@ -55,6 +56,9 @@ class Retriever:
         self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
+        # the learned view encoder's table (issue 17): fused with the descriptor in rank (query/fusion.py)
+        learned = tables.learned_views if profile.learned_encoder is not None else None
+        self.learned = None if learned is None else ViewReranker(learned, tables.meshes.num_rows, device)
         from pipeline.localfeat.config import VerifyConfig
 
         self.verifier = LocalVerifier(
@@ -111,6 +115,7 @@ class Retriever:
             # the caption and view spaces must match even for roles this query does not load
             roles = {*strategy.roles(settings.prompt_weight > 0), "text_encoder", "view_encoder"}
             check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
+            check_learned(onboarding, prof.learned_encoder, store.root)
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
             r.version = version
@@ -161,6 +166,7 @@ class Retriever:
         """Roles a query needs: the embedding roles, plus what finds the object when it comes from
         ``source`` ("detector": detector and segmenter; "box": segmenter; "mask" or None: nothing more)."""
         roles = list(self.strategy.roles(self.settings.prompt_weight > 0))
+        roles += ["learned_encoder"] if self.learned is not None else []
         if source == "detector":
             roles.append("detector")
         if source in ("detector", "box") and roi_mode == "segm":
@@ -220,6 +226,8 @@ class Retriever:
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         with_prompt = self.settings.prompt_weight > 0
         emb = embed_roi(self.strategy, self.model, roi, prompt, with_prompt)
+        if self.learned is not None:
+            emb.learned = np.asarray(self.model("learned_encoder").encode_image([roi.image]), np.float32)[0]
         if self.settings.verify and self.verifier.available:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb
@@ -282,31 +290,34 @@ class Retriever:
             if mode == "image-only":
                 return self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
             text_only = mode == "text-only"
+            fuse_all = not text_only and self._fusing(emb) and self.settings.fuse_all
             s1 = self.text_filter.run(
                 stage1_vector(emb, w),
-                None if text_only else tau,
-                top if text_only else fallback_k,
-                "meshes" if text_only else unit,  # text-only lists the top models
+                None if text_only or fuse_all else tau,
+                self.n_meshes if fuse_all else (top if text_only else fallback_k),
+                "meshes" if text_only or fuse_all else unit,  # text-only lists the top models
             )
             s2 = self.reranker.score(emb.image_space, s1.mesh_idx, per_view=views and not text_only)
+            learned, image = self._fused(emb, s1.mesh_idx, s2.scores, s1.scores)
         except ValueError as exc:  # vector widths that do not match the store
             raise QueryError(
                 f"{exc}: the store was embedded with other models than this query uses"
             ) from None
         timings["stage1_ms"] = s1.seconds * 1000
         timings["stage2_ms"] = s2.seconds * 1000
-        fused, inl = s2.scores, np.full(len(s1.mesh_idx), -1, np.int64)
+        fused, inl = image, np.full(len(s1.mesh_idx), -1, np.int64)
         if mode == "text-only":
             order = np.arange(len(s1.mesh_idx))
             decided, used_fallback = "stage1", False
         else:
-            order = np.lexsort((s1.mesh_idx, -s1.scores, -s2.scores))
-            order, fused, inl = self._verified(emb, s1.mesh_idx, s2.scores, order, verify, timings)
+            order = np.lexsort((s1.mesh_idx, -s1.scores, -image))
+            order, fused, inl = self._verified(emb, s1.mesh_idx, image, order, verify, timings)
             decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
         order = order[: int(top)]
         cands = [
             self._candidate(
-                i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j], inl[j], fused[j]
+                i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j], inl[j], fused[j],
+                None if learned is None or mode == "text-only" else learned[j],
             )
             for i, j in enumerate(order)
         ]
@@ -336,11 +347,15 @@ class Retriever:
         timings["stage1_ms"] = 0.0
         timings["stage2_ms"] = s2.seconds * 1000
         idx = np.arange(len(s2.scores))
-        order = np.lexsort((idx, -s2.scores))
-        order, fused, inl = self._verified(emb, idx, s2.scores, order, verify, timings)
+        learned, image = self._fused(emb, idx, s2.scores, None)
+        order = np.lexsort((idx, -image))
+        order, fused, inl = self._verified(emb, idx, image, order, verify, timings)
         order = order[: int(top)]
         cands = [
-            self._candidate(i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j])
+            self._candidate(
+                i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j],
+                None if learned is None else learned[j],
+            )
             for i, j in enumerate(order)
         ]
         result = QueryResult(
@@ -350,10 +365,23 @@ class Retriever:
             result.view_ranking = _view_ranking(idx, s2, None)
         return result
 
-    def _candidate(self, rank, mesh_idx, text, image, view, inliers=-1, fused=None) -> Candidate:
+    def _fusing(self, emb: QueryEmbedding) -> bool:
+        return self.learned is not None and emb.learned is not None
+
+    def _fused(self, emb: QueryEmbedding, mesh_idx, desc, text):
+        """(learned cosines or None, the score stage 2 ranks by) of ``mesh_idx`` (:mod:`pipeline.query.fusion`)."""
+        if not self._fusing(emb):
+            return None, desc
+        learned = self.learned.score(emb.learned, mesh_idx).scores
+        weights = FusionWeights(self.settings.fuse_desc, self.settings.fuse_text)
+        return learned, fuse(learned, desc, text, weights)
+
+    def _candidate(
+        self, rank, mesh_idx, text, image, view, inliers=-1, fused=None, learned=None
+    ) -> Candidate:
         j = int(mesh_idx)
         ok = image is not None and np.isfinite(image)
-        verified = ok and inliers is not None and inliers >= 0
+        verified = ok and ((inliers is not None and inliers >= 0) or learned is not None)
         return Candidate(
             rank=rank,
             mesh_id=self._mesh_id[j],
@@ -363,8 +391,9 @@ class Retriever:
             image_score=round(float(image), 6) if ok else None,
             best_view=int(view) if ok and view >= 0 else None,
             library_root=self._root[j],
-            inliers=int(inliers) if verified else None,
-            score=round(float(fused), 6) if verified and fused is not None else None,
+            inliers=int(inliers) if ok and inliers is not None and inliers >= 0 else None,
+            score=round(float(fused), 6) if verified and fused is not None and np.isfinite(fused) else None,
+            learned_score=round(float(learned), 6) if learned is not None and np.isfinite(learned) else None,
         )
 
     def query(

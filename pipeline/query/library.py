@@ -91,6 +91,25 @@ def check_models(onboarding: Onboarding, profile_name: str, keys: dict[str, str]
             )
 
 
+def check_learned(onboarding: Onboarding, spec, store_root) -> None:
+    """Fail with one line when the store's learned view embeddings come from another encoder or other options
+    than the query's ``learned_encoder`` (a store without them, or a query without the role, is fine: the
+    query then ranks by the descriptor alone)."""
+    stored = onboarding.fingerprints.get("embed_image:learned_encoder")
+    if spec is None or not stored:
+        return
+    from pipeline.onboard.stages import encoder_fingerprint
+
+    render = onboarding.fingerprints.get("render")
+    if encoder_fingerprint(None, spec, render) != stored:
+        raise QueryError(
+            f"store {store_root} was onboarded with learned_encoder "
+            f"{onboarding.models.get('learned_encoder')} under other options than the query's {spec.key()} "
+            f"{spec.options}: pass the same --model overrides as at onboarding, query with "
+            "--model learned_encoder=none, or onboard again"
+        )
+
+
 class StoreTables:
     """Active meshes and the embedding tables of one store state, for one profile's encoders."""
 
