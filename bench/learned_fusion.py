@@ -114,24 +114,28 @@ def main() -> int:
     label = np.array([r["label"] for r in recs])
     groups = photo if args.folds == "photo" else label
     s1 = stage1_mask(text)
-    sizes = sorted({int(f.stem.split("_")[1]) for f in feats.glob("feat_*_1.npz")})
+    sizes = sorted({int(f.stem.split("_")[1]) for f in feats.glob("feat_*_0.npz")})
     if args.sizes:
         sizes = [s for s in sizes if s in {int(x) for x in args.sizes.split(",")}]
     learned = {
         (size, flip, pool): learned_scores(feats, size, flip, pool, n_meshes)
         for size in sizes
         for flip in (0, 1)
+        if (feats / f"feat_{size}_{flip}.npz").exists()
         for pool in ("cls", "mean", "patch")
     }
-    grid = list(
-        itertools.product(
+    steps = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    grid = [
+        g
+        for g in itertools.product(
             learned,
-            (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),  # w_desc
-            (0.0, 0.1, 0.2, 0.3),  # w_text
+            steps,  # w_desc
+            steps,  # w_text
             (0.0, 0.1, 0.2, 0.3),  # w_verify
             (False, True),  # stage-1 filter
         )
-    )
+        if g[1] + g[2] <= 0.9 + 1e-9  # the learned cosine keeps at least 0.1
+    ]
     # every setting's rank of every query, once
     table = np.stack(
         [
