@@ -79,7 +79,9 @@ class Profile:
                 raise ValueError(f"unknown model role {role!r}; roles: {', '.join(self.roles())}")
             if model_id.strip().lower() == "none":
                 if role not in OPTIONAL_ROLES:
-                    raise ValueError(f"role {role!r} cannot be dropped; optional: {', '.join(OPTIONAL_ROLES)}")
+                    raise ValueError(
+                        f"role {role!r} cannot be dropped; optional: {', '.join(OPTIONAL_ROLES)}"
+                    )
                 changes[role] = None
                 continue
             if spec is None:

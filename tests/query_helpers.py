@@ -115,7 +115,9 @@ def make_store(
         [],
         [],
     )
-    learned_rows = [(mesh_id, i, v) for mesh_id, m in meshes.items() for i, v in enumerate(m.get("learned", []))]
+    learned_rows = [
+        (mesh_id, i, v) for mesh_id, m in meshes.items() for i, v in enumerate(m.get("learned", []))
+    ]
     if learned_rows:
         from pipeline.onboard.stages import encoder_fingerprint
 

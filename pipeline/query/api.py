@@ -24,8 +24,8 @@ import numpy as np
 
 from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
 from pipeline.query.errors import QueryError
-from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.fusion import FusionWeights, fuse
+from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_learned, check_models, latest_onboarding, store_version
 from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
 from pipeline.query.roi import Roi, make_roi
@@ -313,10 +313,17 @@ class Retriever:
             order = np.lexsort((s1.mesh_idx, -s1.scores, -image))
             order, fused, inl = self._verified(emb, s1.mesh_idx, image, order, verify, timings)
             decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
+            used_fallback = used_fallback and not fuse_all  # fusing ranks every model: no tau, no fallback
         order = order[: int(top)]
         cands = [
             self._candidate(
-                i + 1, s1.mesh_idx[j], s1.scores[j], s2.scores[j], s2.best_view[j], inl[j], fused[j],
+                i + 1,
+                s1.mesh_idx[j],
+                s1.scores[j],
+                s2.scores[j],
+                s2.best_view[j],
+                inl[j],
+                fused[j],
                 None if learned is None or mode == "text-only" else learned[j],
             )
             for i, j in enumerate(order)
@@ -324,6 +331,7 @@ class Retriever:
         result = QueryResult(
             cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
         )
+        result.fused = learned is not None and mode != "text-only"
         if views and mode == "text-only":
             result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
         elif views:
@@ -353,7 +361,13 @@ class Retriever:
         order = order[: int(top)]
         cands = [
             self._candidate(
-                i + 1, j, None, s2.scores[j], s2.best_view[j], inl[j], fused[j],
+                i + 1,
+                j,
+                None,
+                s2.scores[j],
+                s2.best_view[j],
+                inl[j],
+                fused[j],
                 None if learned is None else learned[j],
             )
             for i, j in enumerate(order)
@@ -361,6 +375,7 @@ class Retriever:
         result = QueryResult(
             cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w, unit
         )
+        result.fused = learned is not None
         if views:
             result.view_ranking = _view_ranking(idx, s2, None)
         return result

@@ -12,6 +12,8 @@ def _score(v: float | None) -> str:
 
 
 def _stage1_line(r: QueryResult) -> str:
+    if getattr(r, "fused", False) and r.mode != "text-only":
+        return f"all {r.n_stage1} models ranked by the fused learned / descriptor / text score"
     if r.mode == "image-only":
         return f"image-only: all {r.n_stage1} models ranked by stage 2"
     if r.mode == "text-only":

@@ -19,7 +19,9 @@ class QueryEmbedding:
     roi_caption: str | None = None  # the ROI's own caption (caption-space profiles)
     local: object | None = None  # the ROI's local features (pipeline.localfeat.Features) when verifying
     inliers: dict = field(default_factory=dict)  # mesh_idx -> (inliers, best view): verification cache
-    learned: np.ndarray | None = None  # float32, the ROI in the learned encoder's space (when the store has it)
+    learned: np.ndarray | None = (
+        None  # float32, the ROI in the learned encoder's space (when the store has it)
+    )
 
     def describe(self) -> dict:
         return {
@@ -86,6 +88,7 @@ class QueryResult:
     query: dict = field(default_factory=dict)  # image, prompt, ROI and models (filled by Retriever.query)
     roi: object | None = field(default=None, repr=False)  # the Roi (Retriever.query), not serialised
     view_ranking: ViewRanking | None = field(default=None, repr=False)  # rank(views=True); not serialised
+    fused: bool = False  # ranked by the fused learned / descriptor / text score (pipeline.query.fusion)
 
     @property
     def best(self) -> Candidate | None:
@@ -102,6 +105,7 @@ class QueryResult:
             "fallback_unit": self.fallback_unit,
             "prompt_weight": self.prompt_weight,
             "n_stage1": self.n_stage1,
+            "fused": self.fused,
             "candidates": [c.to_dict() for c in self.candidates],
             "timings_ms": {k: round(v, 3) for k, v in self.timings.items()},
         }

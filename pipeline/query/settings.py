@@ -37,10 +37,14 @@ class QuerySettings:
     verify: bool = False  # local-feature verification of the top candidates (pipeline.query.verify)
     verify_top: int = 20  # candidates verified (by global score)
     verify_weight: float = 0.3  # weight of the inlier term in the fused score
-    # fusion with the learned view encoder (pipeline.query.fusion), when the store has its embeddings
-    fuse_desc: float = 0.3  # weight of the descriptor cosine (the learned cosine gets 1 - desc - text)
-    fuse_text: float = 0.2  # weight of the stage-1 text score
-    fuse_all: bool = True  # two-stage mode fuses every model instead of cutting at tau first
+    # fusion with the learned view encoder (pipeline.query.fusion), when the store has its embeddings:
+    # weights proportional to 1 / each cosine's spread over the library on the labelled photos (label-free,
+    # docs/results.md "Learned view encoder"); the learned cosine gets 1 - desc - text = 0.27
+    fuse_desc: float = 0.22  # weight of the descriptor cosine
+    fuse_text: float = 0.51  # weight of the stage-1 text score
+    fuse_all: bool = (
+        True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
+    )
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})
