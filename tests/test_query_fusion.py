@@ -101,11 +101,23 @@ def test_weights_move_the_order(learned_store):
         cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
         assert cans["red_can"] == pytest.approx(cans["green_can"], abs=1e-5)
     with Retriever.open(
-        learned_store, models=models_with_learned(), use_cache=False, settings_changes={"fuse_desc": 0.5}
+        learned_store,
+        models=models_with_learned(),
+        use_cache=False,
+        settings_changes={"fuse_desc": 0.5, "fuse_text": 0.0},
     ) as r:
         res = r.query(img, "a can", mask=mask, top=4)
         cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
         assert res.candidates[0].name == "red_can" and cans["red_can"] - cans["green_can"] > 0.01
+
+
+def test_bad_fusion_weights_are_a_query_error(learned_store):
+    img, mask = photo("red", 40, 50)
+    with Retriever.open(
+        learned_store, models=models_with_learned(), use_cache=False, settings_changes={"fuse_desc": 0.8}
+    ) as r:
+        with pytest.raises(QueryError, match="fusion weights"):
+            r.query(img, "a can", mask=mask)
 
 
 def test_store_without_learned_embeddings_ranks_by_the_descriptor(tmp_path):

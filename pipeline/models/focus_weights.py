@@ -267,8 +267,17 @@ def convert(onnx_path: Path, out_dir: Path, *, source: dict | None = None, atol:
 def load_backbone(directory: Path) -> Any:
     """``Dinov2Model.from_pretrained(directory)`` in eval mode, every weight required (none left random)."""
     from transformers import Dinov2Model
+    from transformers.utils import logging as hf_logging
 
-    net, info = Dinov2Model.from_pretrained(str(directory), local_files_only=True, output_loading_info=True)
+    bars = hf_logging.is_progress_bar_enabled()
+    hf_logging.disable_progress_bar()  # no "Loading weights" bar in the CLIs' output
+    try:
+        net, info = Dinov2Model.from_pretrained(
+            str(directory), local_files_only=True, output_loading_info=True
+        )
+    finally:
+        if bars:
+            hf_logging.enable_progress_bar()
     unset = [k for k in info.get("missing_keys", []) if "mask_token" not in k]
     if unset or info.get("unexpected_keys"):
         raise ModelLoadError(

@@ -22,16 +22,17 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
+from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
-from pipeline.query.fusion import FusionWeights, fuse
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_learned, check_models, latest_onboarding, store_version
-from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
+from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
 from pipeline.query.settings import MODES, QuerySettings, settings_for
-from pipeline.query.stage1 import FALLBACK_UNITS, TextFilter
+from pipeline.query.stage1 import TextFilter
 from pipeline.query.stage2 import ViewReranker
+from pipeline.query.steps import rank
+from pipeline.query.steps.state import RankContext
 from pipeline.query.verify import LocalVerifier
 
 
@@ -56,7 +57,7 @@ class Retriever:
         self._open_args: dict = {}
         self.text_filter = TextFilter(tables.captions, threads)
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
-        # the learned view encoder's table (issue 17): fused with the descriptor in rank (query/fusion.py)
+        # the learned view encoder's table (issue 17), fused in steps/learned.py
         learned = tables.learned_views if profile.learned_encoder is not None else None
         self.learned = None if learned is None else ViewReranker(learned, tables.meshes.num_rows, device)
         from pipeline.localfeat.config import VerifyConfig
@@ -67,11 +68,15 @@ class Retriever:
             tables.meshes.column("mesh_id").to_pylist(),
             VerifyConfig(top=settings.verify_top, weight=settings.verify_weight),
         )
-        m = tables.meshes
-        self._mesh_id = m.column("mesh_id").to_pylist()
-        self._name = m.column("name").to_pylist()
-        self._path = m.column("source_path").to_pylist()
-        self._root = m.column("library_root").to_pylist()
+        self.ranking = RankContext.from_meshes(
+            tables.meshes,
+            text_filter=self.text_filter,
+            reranker=self.reranker,
+            verifier=self.verifier,
+            settings=settings,
+            learned=self.learned,
+        )
+        self._mesh_id = self.ranking.mesh_id
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -232,27 +237,10 @@ class Retriever:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb
 
-    def _verified(self, emb: QueryEmbedding, mesh_idx, image, order, verify, timings):
-        """Fuse local-feature inliers into the top ``verify_top`` of ``order``: (new order, fused, inliers)."""
-        inl = np.full(len(mesh_idx), -1, np.int64)
-        fused = np.asarray(image, np.float32).copy()
-        on = self.settings.verify if verify is None else bool(verify)
-        if not on or emb.local is None or not len(order):
-            return order, fused, inl
-        top = order[: max(int(self.settings.verify_top), 0)]
-        cache, seconds = self.verifier.inliers(emb.local, [int(mesh_idx[j]) for j in top], emb.inliers)
-        timings["verify_ms"] = seconds * 1000
-        counts = np.array([cache[int(mesh_idx[j])][0] for j in top], np.int64)
-        inl[top] = counts
-        fused[top] += self.verifier.cfg.bonus(counts)
-        rest = np.full(len(order), len(order), np.int64)
-        rest[order] = np.arange(len(order))  # the global order breaks ties of the fused score
-        return np.lexsort((rest, -fused)), fused, inl
-
     def rank(
         self,
         emb: QueryEmbedding,
-        mode: str = "two-stage",
+        mode: str | None = None,
         threshold: float | None = None,
         fallback_k: int = 10,
         top: int = 5,
@@ -261,154 +249,26 @@ class Retriever:
         views: bool = False,
         verify: bool | None = None,
     ) -> QueryResult:
-        """Rank the store's models for ``emb`` (no model calls: cheap enough for parameter sweeps).
+        """Rank the store's models for ``emb`` with the mode's step list (:mod:`pipeline.query.steps`; no
+        model calls: cheap enough for parameter sweeps). ``None`` = the settings' value.
 
         ``fallback_unit``: what ``fallback_k`` counts when nothing passes tau, ``"captions"`` (the paper's:
-        the top-k caption rows kept as their distinct models) or ``"meshes"``; ``None`` = the settings'.
-        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses
-        (raw view scores: verification re-ranks models, not views).
-        ``verify`` (default: the settings') re-ranks the top candidates with local features when the
-        embedding carries the ROI's keypoints; inlier counts are cached on ``emb``.
+        the top-k caption rows kept as their distinct models) or ``"meshes"``.
+        ``views`` also attaches the view-level ranking (:class:`ViewRanking`) that the paper's mAP@k uses.
+        ``verify`` re-ranks the top candidates with local features when the embedding carries the ROI's
+        keypoints; inlier counts are cached on ``emb``.
         """
-        if mode not in MODES:
-            raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
-        unit = self.settings.fallback_unit if fallback_unit is None else fallback_unit
-        if unit not in FALLBACK_UNITS:
-            raise QueryError(f"unknown fallback unit {unit!r}; choose from {', '.join(FALLBACK_UNITS)}")
-        if int(top) < 1 or int(fallback_k) < 1:
-            raise QueryError("--top and --fallback-k must be at least 1")
-        tau = self.settings.threshold if threshold is None else float(threshold)
-        w = self.settings.prompt_weight if prompt_weight is None else float(prompt_weight)
-        if not 0.0 <= w <= 1.0:
-            raise QueryError(f"prompt weight must be within [0, 1], got {w}")
-        if w > 0 and emb.prompt_vec is None:
-            raise QueryError(
-                "this embedding has no prompt vector: open the Retriever with a prompt weight > 0"
-            )
-        timings: dict[str, float] = {}
-        try:
-            if mode == "image-only":
-                return self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
-            text_only = mode == "text-only"
-            fuse_all = not text_only and self._fusing(emb) and self.settings.fuse_all
-            s1 = self.text_filter.run(
-                stage1_vector(emb, w),
-                None if text_only or fuse_all else tau,
-                self.n_meshes if fuse_all else (top if text_only else fallback_k),
-                "meshes" if text_only or fuse_all else unit,  # text-only lists the top models
-            )
-            s2 = self.reranker.score(emb.image_space, s1.mesh_idx, per_view=views and not text_only)
-            learned, image = self._fused(emb, s1.mesh_idx, s2.scores, s1.scores)
-        except ValueError as exc:  # vector widths that do not match the store
-            raise QueryError(
-                f"{exc}: the store was embedded with other models than this query uses"
-            ) from None
-        timings["stage1_ms"] = s1.seconds * 1000
-        timings["stage2_ms"] = s2.seconds * 1000
-        fused, inl = image, np.full(len(s1.mesh_idx), -1, np.int64)
-        if mode == "text-only":
-            order = np.arange(len(s1.mesh_idx))
-            decided, used_fallback = "stage1", False
-        else:
-            order = np.lexsort((s1.mesh_idx, -s1.scores, -image))
-            order, fused, inl = self._verified(emb, s1.mesh_idx, image, order, verify, timings)
-            decided, used_fallback = ("stage1" if len(order) == 1 else "stage2"), s1.used_fallback
-            used_fallback = used_fallback and not fuse_all  # fusing ranks every model: no tau, no fallback
-        order = order[: int(top)]
-        cands = [
-            self._candidate(
-                i + 1,
-                s1.mesh_idx[j],
-                s1.scores[j],
-                s2.scores[j],
-                s2.best_view[j],
-                inl[j],
-                fused[j],
-                None if learned is None or mode == "text-only" else learned[j],
-            )
-            for i, j in enumerate(order)
-        ]
-        result = QueryResult(
-            cands, used_fallback, decided, len(s1.mesh_idx), timings, mode, tau, int(fallback_k), w, unit
-        )
-        result.fused = learned is not None and mode != "text-only"
-        if views and mode == "text-only":
-            result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
-        elif views:
-            result.view_ranking = _view_ranking(s1.mesh_idx, s2, s1.scores)
-        return result
-
-    def _caption_ranking(self, vec, mesh_idx: np.ndarray) -> ViewRanking:
-        """Every caption row of ``mesh_idx`` by its own stage-1 cosine (text-only's view-level ranking)."""
-        rows_mesh, scores = self.text_filter.caption_scores(vec)
-        keep = np.zeros(self.n_meshes, bool)
-        keep[np.asarray(mesh_idx, dtype=np.int64)] = True
-        sel = keep[rows_mesh]
-        m, s = rows_mesh[sel], scores[sel]
-        order = np.lexsort((m, -s))
-        return ViewRanking(m[order], np.full(len(order), -1, np.int16), s[order])
-
-    def _rank_image_only(
-        self, emb, top, tau, fallback_k, w, timings, unit, views=False, verify=None
-    ) -> QueryResult:
-        s2 = self.reranker.score(emb.image_space, None, per_view=views)
-        timings["stage1_ms"] = 0.0
-        timings["stage2_ms"] = s2.seconds * 1000
-        idx = np.arange(len(s2.scores))
-        learned, image = self._fused(emb, idx, s2.scores, None)
-        order = np.lexsort((idx, -image))
-        order, fused, inl = self._verified(emb, idx, image, order, verify, timings)
-        order = order[: int(top)]
-        cands = [
-            self._candidate(
-                i + 1,
-                j,
-                None,
-                s2.scores[j],
-                s2.best_view[j],
-                inl[j],
-                fused[j],
-                None if learned is None else learned[j],
-            )
-            for i, j in enumerate(order)
-        ]
-        result = QueryResult(
-            cands, False, "stage2", len(idx), timings, "image-only", tau, int(fallback_k), w, unit
-        )
-        result.fused = learned is not None
-        if views:
-            result.view_ranking = _view_ranking(idx, s2, None)
-        return result
-
-    def _fusing(self, emb: QueryEmbedding) -> bool:
-        return self.learned is not None and emb.learned is not None
-
-    def _fused(self, emb: QueryEmbedding, mesh_idx, desc, text):
-        """(learned cosines or None, the score stage 2 ranks by) of ``mesh_idx`` (:mod:`pipeline.query.fusion`)."""
-        if not self._fusing(emb):
-            return None, desc
-        learned = self.learned.score(emb.learned, mesh_idx).scores
-        weights = FusionWeights(self.settings.fuse_desc, self.settings.fuse_text)
-        return learned, fuse(learned, desc, text, weights)
-
-    def _candidate(
-        self, rank, mesh_idx, text, image, view, inliers=-1, fused=None, learned=None
-    ) -> Candidate:
-        j = int(mesh_idx)
-        ok = image is not None and np.isfinite(image)
-        verified = ok and ((inliers is not None and inliers >= 0) or learned is not None)
-        return Candidate(
-            rank=rank,
-            mesh_id=self._mesh_id[j],
-            name=self._name[j],
-            source_path=self._path[j],
-            text_score=None if text is None else round(float(text), 6),
-            image_score=round(float(image), 6) if ok else None,
-            best_view=int(view) if ok and view >= 0 else None,
-            library_root=self._root[j],
-            inliers=int(inliers) if ok and inliers is not None and inliers >= 0 else None,
-            score=round(float(fused), 6) if verified and fused is not None and np.isfinite(fused) else None,
-            learned_score=round(float(learned), 6) if learned is not None and np.isfinite(learned) else None,
+        return rank(
+            self.ranking,
+            emb,
+            mode=mode,
+            threshold=threshold,
+            fallback_k=fallback_k,
+            top=top,
+            prompt_weight=prompt_weight,
+            fallback_unit=fallback_unit,
+            views=views,
+            verify=verify,
         )
 
     def query(
@@ -418,7 +278,7 @@ class Retriever:
         box=None,
         mask=None,
         roi_mode: str = "segm",
-        mode: str = "two-stage",
+        mode: str | None = None,
         threshold: float | None = None,
         fallback_k: int = 10,
         top: int = 5,
@@ -427,7 +287,7 @@ class Retriever:
         verify: bool | None = None,
     ) -> QueryResult:
         """ROI, embedding and ranking of one photo + prompt, with a per-step latency breakdown."""
-        if mode not in MODES:
+        if mode is not None and mode not in MODES:
             raise QueryError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
         loaded = sum(self.load_seconds.values())
         t0 = time.perf_counter()
@@ -489,15 +349,3 @@ class Retriever:
         with self._db_lock:
             rel = self.tables.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
-
-
-def _view_ranking(mesh_idx: np.ndarray, s2, text: np.ndarray | None) -> ViewRanking:
-    """Flatten stage 2's per-view matrix of ``mesh_idx`` into one ranking of views, best first."""
-    scores, ids = s2.view_scores, s2.view_ids
-    mesh = np.broadcast_to(np.asarray(mesh_idx, dtype=np.int32)[:, None], scores.shape)
-    valid = ids >= 0
-    m, v, s = mesh[valid], ids[valid], scores[valid]
-    t = None if text is None else np.broadcast_to(np.asarray(text, np.float32)[:, None], scores.shape)[valid]
-    keys = (v, m, -s) if t is None else (v, m, -t, -s)
-    order = np.lexsort(keys)
-    return ViewRanking(m[order], v[order], s[order], None if t is None else t[order])

@@ -24,6 +24,7 @@ class QuerySettings:
     """Defaults of one profile's query path."""
 
     threshold: float  # stage-1 tau
+    mode: str = "two-stage"  # the step list ranking runs (pipeline.query.steps.STEP_LISTS)
     fallback_k: int = 10  # stage-1 top-k when nothing passes tau (reference scripts: 15)
     fallback_unit: str = "captions"  # what fallback_k counts: caption rows (paper) or "meshes"
     prompt_weight: float = 0.0  # weight of the prompt's text embedding in the stage-1 query vector
