@@ -33,7 +33,9 @@ def main() -> int:
     p.add_argument(
         "--taus", help="also rank two-stage + verify at these stage-1 thresholds (comma list), e.g. 0.4,0.5"
     )
-    p.add_argument("--box-segmenter", help="box -> mask without masks: grabcut (default), saliency-grabcut, ...")
+    p.add_argument(
+        "--box-segmenter", help="box -> mask without masks: grabcut (default), saliency-grabcut, ..."
+    )
     p.add_argument("--json", help="write per-query ranks and the summary here")
     args = p.parse_args()
 
