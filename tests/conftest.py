@@ -43,6 +43,7 @@ def offline_models():
         "captioner": create_model("captioner", p.captioner),
         "text_encoder": create_model("text_encoder", p.text_encoder),
         "view_encoder": create_model("view_encoder", p.view_encoder),
+        "learned_encoder": create_model("learned_encoder", p.learned_encoder),
     }
 
 

@@ -84,7 +84,8 @@ def make_store(
     """A store written row by row (no rendering, no models).
 
     ``meshes``: mesh_id -> {"name", "captions": (n, d) vectors, "views": (m, d) vectors, optional
-    "status", "source_path", "library_root", "images": list of PIL images for the views}.
+    "status", "source_path", "library_root", "images": list of PIL images for the views, "learned": (m, d)
+    learned-encoder vectors of the views (stored under the profile's learned-encoder fingerprint)}.
     """
     from datetime import datetime, timezone
 
@@ -114,6 +115,13 @@ def make_store(
         [],
         [],
     )
+    learned_rows = [
+        (mesh_id, i, v) for mesh_id, m in meshes.items() for i, v in enumerate(m.get("learned", []))
+    ]
+    if learned_rows:
+        from pipeline.onboard.stages import encoder_fingerprint
+
+        fps["embed_image:learned_encoder"] = encoder_fingerprint(None, prof.learned_encoder, fps["render"])
     for mesh_id, m in meshes.items():
         mesh_rows.append(
             {
@@ -153,6 +161,11 @@ def make_store(
     if view_vecs:
         tables[f"image_embeddings/{slug(models['view_encoder'])}"] = embedding_table(
             view_ids, view_idx, view_vecs, models["view_encoder"], fps["embed_image:view_encoder"], run_id
+        )
+    if learned_rows:
+        ids, idx, vecs = zip(*learned_rows, strict=True)
+        tables[f"image_embeddings/{slug(models['learned_encoder'])}"] = embedding_table(
+            ids, idx, vecs, models["learned_encoder"], fps["embed_image:learned_encoder"], run_id
         )
     if view_rows:
         tables["views"] = pa.Table.from_pylist(view_rows, schema=schemas.VIEWS)

@@ -40,8 +40,9 @@ def test_tables_schemas_and_counts(built):
     views = s.read("views")
     assert views.schema.equals(schemas.VIEWS) and views.num_rows == 3 * V
     assert s.read("captions").num_rows == 3 * V
-    for table in ("text_embeddings", "image_embeddings"):
-        (dataset,) = s.datasets(table)
+    # one text table; two image tables: the descriptor and the learned encoder (offline profile)
+    assert len(s.datasets("text_embeddings")) == 1 and len(s.datasets("image_embeddings")) == 2
+    for dataset in s.datasets("text_embeddings") + s.datasets("image_embeddings"):
         emb = s.read(dataset)
         assert emb.num_rows == 3 * V
         dim = emb.column("dim")[0].as_py()
@@ -220,5 +221,5 @@ def test_cap3d_camera_layout(tmp_path, offline_models):
         205,
     ]  # ... on black instead of gray
     assert sorted(s.read("captions").column("view_index").to_pylist()) == list(range(8))  # not captioned
-    (img_ds,) = s.datasets("image_embeddings")
-    assert sorted(s.read(img_ds).column("view_index").to_pylist()) == list(range(9))  # a stage-2 view
+    for img_ds in s.datasets("image_embeddings"):  # descriptor and learned encoder
+        assert sorted(s.read(img_ds).column("view_index").to_pylist()) == list(range(9))  # a stage-2 view

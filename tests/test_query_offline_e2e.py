@@ -81,11 +81,16 @@ def test_local_feature_verification(ycb_store, queries, offline_models):
         on = r.rank(emb, "image-only", top=len(YCB_NAMES))
         best = on.candidates[0]
         assert best.name == "004_sugar_box" and best.inliers >= 15
-        assert best.score == pytest.approx(best.image_score + r.verifier.cfg.bonus(best.inliers), abs=1e-5)
+        # image-only fusion: the learned and descriptor weights rescaled to sum to 1, then the inlier bonus
+        s = r.settings
+        wl, wd = 1 - s.fuse_desc - s.fuse_text, s.fuse_desc
+        base = (wl * best.learned_score + wd * best.image_score) / (wl + wd)
+        assert best.score == pytest.approx(base + r.verifier.cfg.bonus(best.inliers), abs=1e-5)
         assert "verify_ms" in on.timings and emb.inliers  # cached on the embedding
         assert max(c.inliers for c in on.candidates[1:]) < best.inliers
         off = r.rank(emb, "image-only", top=len(YCB_NAMES), verify=False)
-        assert all(c.inliers is None and c.score is None for c in off.candidates)
+        assert all(c.inliers is None for c in off.candidates)
+        assert all(c.score is not None and c.learned_score is not None for c in off.candidates)  # fused
     with Retriever.open(
         store, profile="offline", models=offline_models, settings_changes={"verify": False}
     ) as r:

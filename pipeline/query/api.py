@@ -25,7 +25,14 @@ import time
 from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
-from pipeline.query.library import StoreTables, check_models, latest_onboarding, query_profile, store_version
+from pipeline.query.library import (
+    StoreTables,
+    check_learned,
+    check_models,
+    latest_onboarding,
+    query_profile,
+    store_version,
+)
 from pipeline.query.models import QueryModels, roles_for
 from pipeline.query.modes import MODES
 from pipeline.query.recover import Gate, recovering, vanished_file
@@ -65,11 +72,15 @@ class Retriever:
         except ValueError as exc:
             raise QueryError(str(exc)) from None
         self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
+        # the learned view encoder's table (issue 17), fused in steps/learned.py
+        learned = tables.learned_views if profile.learned_encoder is not None else None
+        self.learned = None if learned is None else ViewReranker(learned, tables.meshes.num_rows, device)
         cfg = VerifyConfig(top=settings.verify_top, weight=settings.verify_weight)
         self.verifier = LocalVerifier(
             store, tables.onboarding, tables.meshes.column("mesh_id").to_pylist(), cfg
         )
         parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
+        parts["learned"] = self.learned
         self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
         self.mesh = tables.mesh
         self._init_acceptance()
@@ -142,6 +153,7 @@ class Retriever:
             # the caption and view spaces must match even for roles this query does not load
             roles = {*strategy.roles(settings.prompt_weight > 0), "text_encoder", "view_encoder"}
             check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
+            check_learned(onboarding, prof.learned_encoder, store.root)
             tables = StoreTables(store, onboarding, use_cache=use_cache)
             r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
             r.version, r.lease = version, held
@@ -191,10 +203,11 @@ class Retriever:
             self.lease.release()
 
     def required_roles(self, source: str | None = None, roi_mode: str = "segm") -> list[str]:
-        """Roles a query needs (:func:`pipeline.query.models.roles_for`) that this profile has."""
-        return self.models.available(
-            roles_for(self.strategy.roles(self.settings.prompt_weight > 0), source, roi_mode)
-        )
+        """Roles a query needs (:func:`pipeline.query.models.roles_for`) that this profile has, with the
+        learned view encoder where the store has its embeddings."""
+        roles = list(self.strategy.roles(self.settings.prompt_weight > 0))
+        roles += ["learned_encoder"] if self.learned is not None else []
+        return self.models.available(roles_for(roles, source, roi_mode))
 
     def load_models(self, roles) -> None:
         """Build the adapters of ``roles`` now (not yet loaded ones only)."""
@@ -226,6 +239,8 @@ class Retriever:
         """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
+        if self.learned is not None:
+            emb.learned = self.model("learned_encoder").encode_image([roi.image])[0]
         if self.settings.verify and self.verifier.available:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb

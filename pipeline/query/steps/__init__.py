@@ -12,6 +12,7 @@ service and the evaluation sweeps, all rank here; no step calls a model, so re-r
 ``top_text``      stage 1 (text-only): the ``top`` models by caption score
 ``all_models``    stage 1 (image-only): every active model
 ``stage2``        view-encoder scores and best views (``image`` channel, per-view scores)
+``learned``       the learned view encoder's cosine (``learned``) and the fused score (``fusion``)
 ``fuse``          order by score channels
 ``verify``        local-feature inliers of the top candidates fused into their score (``inliers``, ``fused``)
 ``acceptance``    the open-set verdict: calibrated ``confidence`` and ``accepted`` (pipeline.query.accept)
@@ -33,6 +34,7 @@ from pipeline.query.steps import (
     candidates,
     caption_ranking,
     fuse,
+    learned,
     shortlist,
     stage2,
     top_text,
@@ -58,8 +60,9 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "two-stage": (
         Step(shortlist.run),
         Step(stage2.run),
-        Step(fuse.run, {"by": ("image", "text")}),
-        Step(verify.run),
+        Step(learned.run),
+        Step(fuse.run, {"by": ("fusion", "text")}),
+        Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),
         Step(view_ranking.run),
@@ -74,8 +77,9 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "image-only": (
         Step(all_models.run),
         Step(stage2.run),
-        Step(fuse.run, {"by": ("image",)}),
-        Step(verify.run),
+        Step(learned.run),
+        Step(fuse.run, {"by": ("fusion",)}),
+        Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),
         Step(view_ranking.run),

@@ -13,6 +13,7 @@ def run(state: RankState) -> RankState:
     text = state.scores.get("text")
     image, view = state.scores["image"], state.best_view["image"]
     inliers, fused = state.scores.get("inliers"), state.scores.get("fused")
+    learned = state.scores.get("learned")
     state.candidates = [
         candidate(
             state.ctx,
@@ -23,17 +24,23 @@ def run(state: RankState) -> RankState:
             view[j],
             -1 if inliers is None else inliers[j],
             None if fused is None else fused[j],
+            None if learned is None else learned[j],
         )
         for i, j in enumerate(state.order[: state.request.top])
     ]
     return state
 
 
-def candidate(ctx: RankContext, rank, mesh_idx, text, image, view, inliers=-1, fused=None) -> Candidate:
-    """One record: scores of a mesh without views are ``None``; ``score`` only for verified candidates."""
+def candidate(
+    ctx: RankContext, rank, mesh_idx, text, image, view, inliers=-1, fused=None, learned=None
+) -> Candidate:
+    """One record: scores of a mesh without views are ``None``; ``score`` for verified or fused candidates
+    (the learned encoder's cosine is ``learned_score``)."""
     j = int(mesh_idx)
     ok = image is not None and np.isfinite(image)
     verified = ok and inliers is not None and inliers >= 0
+    has_learned = learned is not None and bool(np.isfinite(learned))
+    scored = (verified or has_learned) and fused is not None and bool(np.isfinite(fused))
     return Candidate(
         rank=rank,
         mesh_id=ctx.mesh_id[j],
@@ -44,5 +51,6 @@ def candidate(ctx: RankContext, rank, mesh_idx, text, image, view, inliers=-1, f
         best_view=int(view) if ok and view >= 0 else None,
         library_root=ctx.library_root[j],
         inliers=int(inliers) if verified else None,
-        score=round(float(fused), 6) if verified and fused is not None else None,
+        score=round(float(fused), 6) if scored else None,
+        learned_score=round(float(learned), 6) if has_learned else None,
     )

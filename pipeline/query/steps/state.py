@@ -91,6 +91,7 @@ class RankContext:
     library_root: list[str | None]
     calibration: Any = None  # pipeline.query.accept.Calibration of the open-set verdict (None: none)
     calibration_mismatch: str | None = None  # why the calibration does not apply to this store
+    learned: Any = None  # pipeline.query.stage2.ViewReranker over the learned encoder's views, if any
 
     @classmethod
     def from_meshes(cls, meshes, **parts) -> RankContext:
@@ -147,6 +148,7 @@ class RankState:
         out.view_ranking = self.view_ranking
         out.notes = list(self.notes)
         out.verdict = self.verdict
+        out.fused = "learned" in self.scores
         return out
 
 

@@ -12,11 +12,12 @@ import numpy as np
 from pipeline.query.steps.state import RankState
 
 
-def run(state: RankState) -> RankState:
-    """Verify and re-rank when the request asks for it and the embedding carries the ROI's keypoints."""
+def run(state: RankState, *, base: str = "image") -> RankState:
+    """Verify and re-rank when the request asks for it and the embedding carries the ROI's keypoints; the
+    inlier bonus is added to the ``base`` channel (the fused score when the learned encoder takes part)."""
     emb, ctx, order = state.emb, state.ctx, state.order
     inl = np.full(len(state.mesh_idx), -1, np.int64)
-    fused = np.asarray(state.scores["image"], np.float32).copy()
+    fused = np.asarray(state.scores[base], np.float32).copy()
     state.scores["inliers"], state.scores["fused"] = inl, fused
     if not state.request.verify or emb.local is None or not len(order):
         return state

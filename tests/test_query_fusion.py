@@ -1,0 +1,151 @@
+"""Fusion of the learned view encoder with the descriptor and text scores (pipeline/query/fusion.py) and its
+wiring in the Retriever, on hand-made stores with fake adapters."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from query_helpers import FAKE_LIBRARY, fake_models, make_fake_store, make_store, object_image, unit
+
+from pipeline.query import QueryError, Retriever
+from pipeline.query.fusion import FusionWeights, fuse
+
+
+class AspectEncoder:
+    """A stand-in learned encoder: the object's box aspect ratio only (blind to colour)."""
+
+    model_id = "fake-learned"
+    dim = 3
+
+    def encode_image(self, images):
+        rows = []
+        for im in images:
+            arr = np.abs(np.asarray(im.convert("RGB"), np.int16) - 205).sum(axis=2) > 30
+            ys, xs = np.nonzero(arr)
+            h, w = (np.ptp(ys) + 1, np.ptp(xs) + 1) if len(ys) else im.size[::-1]
+            rows.append([np.log(h / w), 1.0, 0.2])
+        return unit(rows)
+
+
+def test_fuse_is_a_weighted_mean_of_cosines():
+    w = FusionWeights(desc=0.2, text=0.3)
+    assert w.learned == pytest.approx(0.5)
+    got = fuse(np.array([0.8, 0.2]), np.array([0.5, 0.9]), np.array([0.6, 0.6]), w)
+    np.testing.assert_allclose(got, [0.5 * 0.8 + 0.2 * 0.5 + 0.3 * 0.6, 0.5 * 0.2 + 0.2 * 0.9 + 0.3 * 0.6])
+    # image-only (no text): the two image weights are rescaled to sum to 1
+    np.testing.assert_allclose(fuse(np.array([1.0]), np.array([0.0]), None, w), [0.5 / 0.7], rtol=1e-6)
+    # a model without views of one kind ranks last
+    assert fuse(np.array([-np.inf]), np.array([0.9]), np.array([0.5]), w)[0] == -np.inf
+
+
+@pytest.mark.parametrize("desc,text", [(-0.1, 0.2), (0.6, 0.5), (0.2, 1.2)])
+def test_fusion_weights_are_checked(desc, text):
+    with pytest.raises(ValueError, match="fusion weights"):
+        FusionWeights(desc, text)
+
+
+@pytest.fixture(scope="module")
+def learned_store(tmp_path_factory):
+    """The fake library with learned (aspect-only) view vectors as well."""
+    models, enc = fake_models(), AspectEncoder()
+    meshes = {}
+    for name, (colour, w, h) in FAKE_LIBRARY.items():
+        views = [object_image(colour, w, h), object_image(colour, int(w * 1.1), h)]
+        meshes[f"id-{name}"] = {
+            "name": name,
+            "captions": models["text_encoder"].encode_text(models["captioner"].caption(views)),
+            "views": models["view_encoder"].encode_image(views),
+            "learned": enc.encode_image(views),
+            "images": views,
+        }
+    return make_store(tmp_path_factory.mktemp("fusion") / "store", meshes)
+
+
+def models_with_learned():
+    return {**fake_models(), "learned_encoder": AspectEncoder()}
+
+
+def photo(colour, w, h):
+    img = object_image(colour, w, h, pad=30)
+    return img, np.abs(np.asarray(img, np.int16) - 205).sum(axis=2) > 30
+
+
+def test_query_fuses_learned_descriptor_and_text(learned_store):
+    img, mask = photo("red", 44, 52)
+    with Retriever.open(learned_store, models=models_with_learned(), use_cache=False) as r:
+        assert r.learned is not None and "learned_encoder" in r.required_roles()
+        res = r.query(img, "the red can", mask=mask, top=4)
+        s = r.settings
+        wl = 1 - s.fuse_desc - s.fuse_text
+        for c in res.candidates:
+            assert c.learned_score is not None
+            want = wl * c.learned_score + s.fuse_desc * c.image_score + s.fuse_text * c.text_score
+            assert c.score == pytest.approx(want, abs=1e-5)
+        scores = [c.score for c in res.candidates]
+        assert scores == sorted(scores, reverse=True)
+        assert res.candidates[0].name == "red_can"
+        assert res.query["embedding"]["learned_dim"] == 3
+
+
+def test_weights_move_the_order(learned_store):
+    """The aspect-only learned encoder cannot tell the red from the green can; with the descriptor's weight
+    at 0 and no text the two cans tie on the learned score, with it the red can wins clearly."""
+    img, mask = photo("red", 40, 50)
+    with Retriever.open(
+        learned_store,
+        models=models_with_learned(),
+        use_cache=False,
+        settings_changes={"fuse_desc": 0.0, "fuse_text": 0.0},
+    ) as r:
+        res = r.query(img, "a can", mask=mask, top=4)
+        cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
+        assert cans["red_can"] == pytest.approx(cans["green_can"], abs=1e-5)
+    with Retriever.open(
+        learned_store,
+        models=models_with_learned(),
+        use_cache=False,
+        settings_changes={"fuse_desc": 0.5, "fuse_text": 0.0},
+    ) as r:
+        res = r.query(img, "a can", mask=mask, top=4)
+        cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
+        assert res.candidates[0].name == "red_can" and cans["red_can"] - cans["green_can"] > 0.01
+
+
+def test_bad_fusion_weights_are_a_query_error(learned_store):
+    img, mask = photo("red", 40, 50)
+    with Retriever.open(
+        learned_store, models=models_with_learned(), use_cache=False, settings_changes={"fuse_desc": 0.8}
+    ) as r:
+        with pytest.raises(QueryError, match="fusion weights"):
+            r.query(img, "a can", mask=mask)
+
+
+def test_store_without_learned_embeddings_ranks_by_the_descriptor(tmp_path):
+    store = make_fake_store(tmp_path / "plain")
+    img, mask = photo("red", 44, 52)
+    with Retriever.open(store, models=fake_models(), use_cache=False) as r:
+        assert r.learned is None and "learned_encoder" not in r.required_roles()
+        res = r.query(img, "the red can", mask=mask)
+        assert all(c.learned_score is None for c in res.candidates)
+        assert res.candidates[0].name == "red_can"
+
+
+def test_query_can_drop_the_learned_encoder(learned_store):
+    img, mask = photo("red", 44, 52)
+    with Retriever.open(
+        learned_store, model_overrides={"learned_encoder": "none"}, models=fake_models(), use_cache=False
+    ) as r:
+        assert r.learned is None
+        res = r.query(img, "the red can", mask=mask)
+        assert all(c.learned_score is None and c.score is None for c in res.candidates)
+
+
+def test_other_learned_encoder_than_the_store_is_one_line(learned_store, tmp_path):
+    with pytest.raises(QueryError, match="learned_encoder") as exc:
+        Retriever.open(
+            learned_store,
+            model_overrides={"learned_encoder": str(tmp_path)},
+            models=models_with_learned(),
+            use_cache=False,
+        )
+    assert "\n" not in str(exc.value)
