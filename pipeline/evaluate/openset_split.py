@@ -55,6 +55,8 @@ def without_meshes(retriever, mesh_ids) -> object:
     sub.meshes = meshes
     sub.captions = _renumbered(tables.captions, keep, new_idx)
     sub.views = _renumbered(tables.views, keep, new_idx)
+    learned = getattr(tables, "learned_views", None)  # the learned view encoder's table, where the store has it
+    sub.learned_views = None if learned is None else _renumbered(learned, keep, new_idx)
     models = {role: retriever.model(role) for role in retriever.required_roles()}
     r = Retriever(
         retriever.store,

@@ -56,3 +56,8 @@ def fuse(
         out = weights.learned * learned + weights.desc * desc + weights.text * np.asarray(text, np.float32)
     # a model without views of one kind cannot be compared: it ranks last (as stage 2 does with -inf)
     return np.where(np.isfinite(learned) & np.isfinite(desc), out, -np.inf).astype(np.float32)
+
+
+def fusing(state) -> bool:
+    """Whether a ranking state fuses the learned encoder (the store has its table and the ROI its vector)."""
+    return getattr(state.ctx, "learned", None) is not None and state.emb.learned is not None

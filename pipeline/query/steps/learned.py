@@ -10,13 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.query.errors import QueryError
-from pipeline.query.fusion import FusionWeights, fuse
+from pipeline.query.fusion import FusionWeights, fuse, fusing
 from pipeline.query.steps.state import RankState, model_mismatch
-
-
-def fusing(state: RankState) -> bool:
-    """Whether this ranking fuses the learned encoder (the store has its table and the ROI its vector)."""
-    return getattr(state.ctx, "learned", None) is not None and state.emb.learned is not None
 
 
 def run(state: RankState) -> RankState:

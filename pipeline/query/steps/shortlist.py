@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.query.embed import stage1_vector
-from pipeline.query.steps.learned import fusing
+from pipeline.query.fusion import fusing
 from pipeline.query.steps.state import RankState, model_mismatch
 
 
