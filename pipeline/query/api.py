@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline.query.embed import embed_roi, stage1_vector, strategy_for
 from pipeline.query.errors import QueryError
+from pipeline.query.handoff import HandOff
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import StoreTables, check_models, latest_onboarding, store_version
 from pipeline.query.results import Candidate, QueryEmbedding, QueryResult, ViewRanking
@@ -68,6 +69,8 @@ class Retriever:
         self._name = m.column("name").to_pylist()
         self._path = m.column("source_path").to_pylist()
         self._root = m.column("library_root").to_pylist()
+        render = tables.onboarding.render_config()
+        self.handoff = HandOff(self.mesh, self.view_poses, render.up if render else "auto")
 
     # ------------------------------------------------------------------ opening
     @classmethod
@@ -280,7 +283,9 @@ class Retriever:
         timings: dict[str, float] = {}
         try:
             if mode == "image-only":
-                return self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
+                result = self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
+                self.handoff.fill(result.candidates)  # issue 19: the pose-estimator hand-off
+                return result
             text_only = mode == "text-only"
             s1 = self.text_filter.run(
                 stage1_vector(emb, w),
@@ -317,6 +322,7 @@ class Retriever:
             result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
         elif views:
             result.view_ranking = _view_ranking(s1.mesh_idx, s2, s1.scores)
+        self.handoff.fill(result.candidates)  # issue 19: the pose-estimator hand-off
         return result
 
     def _caption_ranking(self, vec, mesh_idx: np.ndarray) -> ViewRanking:
@@ -431,6 +437,15 @@ class Retriever:
         if j is None:
             raise QueryError(f"no active mesh {mesh_id!r} in this store")
         return self.tables.meshes.slice(j, 1).to_pylist()[0]
+
+    def view_poses(self, mesh_ids: list[str]) -> list[dict]:
+        """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``."""
+        from pipeline.db import load_sql
+
+        fp = self.tables.onboarding.fingerprints.get("render")
+        params = {"mesh_ids": list(mesh_ids), "render_fingerprint": fp}
+        with self._db_lock:
+            return self.tables.con.sql(load_sql("view_poses"), params=params).to_arrow_table().to_pylist()
 
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
         """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
