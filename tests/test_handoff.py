@@ -282,3 +282,60 @@ def test_frames_reject_unknown_units():
         frames.scale_to_metres("in")
     k = frames.intrinsics(90.0, 200, 100)
     assert k[0, 0] == pytest.approx(50.0) and k[0, 2] == 99.5 and k[1, 2] == 49.5
+
+
+# ---------------------------------------------------------------------------- the service
+def test_service_meshes_sizes_metric_export_and_roi_mask(store, offline_models, tmp_path):
+    import base64
+    import zipfile
+
+    pytest.importorskip("httpx", reason="httpx not installed (FastAPI's TestClient needs it)")
+    import trimesh
+    from fastapi.testclient import TestClient
+    from PIL import Image
+    from query_helpers import render_query_view
+
+    from pipeline.serve.app import create_app
+    from pipeline.serve.service import QueryService, ServiceLimits
+
+    path, library = store
+    r = Retriever.open(path, profile="offline", models=offline_models)
+    service = QueryService(r, ServiceLimits(reload_interval=0, workers=1))
+    hope = _named(r, HOPE_NAME)["mesh_id"]
+    try:
+        with TestClient(create_app(service)) as client:
+            rec = client.get(f"/meshes/{hope}").json()
+            assert rec["units_guess"] == "mm" and rec["scale_to_metres"] == 0.001
+            assert rec["extent_m"] == pytest.approx(HOPE_EXTENT_M, abs=1e-6)
+            assert rec["bounds_max"][2] == pytest.approx(74.1645, abs=1e-3)  # file units
+            z = client.get(f"/meshes/{hope}/export?view=2")
+            assert z.status_code == 200, z.text
+            zf = zipfile.ZipFile(io.BytesIO(z.content))
+            zf.extractall(tmp_path)
+            info = json.loads(zf.read(f"{HOPE_NAME}/model_info.json"))
+            assert info["units"] == "m" and info["best_view"] == 2 and len(info["best_view_pose"]) == 4
+            reloaded = trimesh.load(str(tmp_path / HOPE_NAME / "hope_000002.ply"), process=False)
+            assert np.allclose(reloaded.extents, HOPE_EXTENT_M, rtol=1e-4)
+            bop = zipfile.ZipFile(io.BytesIO(client.get(f"/meshes/{hope}/export?format=bop").content))
+            assert f"{HOPE_NAME}/models/obj_000001.ply" in bop.namelist()
+
+            img, mask = render_query_view(library / "hope" / "hope_000002.ply", resolution=160)
+            buf = io.BytesIO()
+            img.save(buf, format="PNG")
+            ys, xs = np.nonzero(mask)
+            box = f"{xs.min()},{ys.min()},{xs.max() + 1},{ys.max() + 1}"
+            files = {"image": ("q.png", buf.getvalue(), "image/png")}
+            data = {"prompt": "the bbq sauce bottle", "box": box, "roi_mask": "true"}
+            out = client.post("/query", files=files, data=data).json()
+            best = out["candidates"][0]
+            assert best["name"] == HOPE_NAME and best["extent_m"] == pytest.approx(HOPE_EXTENT_M, abs=1e-6)
+            roi_mask = Image.open(io.BytesIO(base64.b64decode(out["query"]["roi"]["mask_png_b64"])))
+            assert (
+                roi_mask.size == img.size and np.asarray(roi_mask).sum() == out["query"]["roi"]["mask_pixels"]
+            )
+            plain = client.post(
+                "/query", files=files, data={"prompt": "the bbq sauce bottle", "box": box}
+            ).json()
+            assert "mask_png_b64" not in plain["query"]["roi"]
+    finally:
+        service.close()
