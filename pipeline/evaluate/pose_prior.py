@@ -1,0 +1,237 @@
+"""How good is the best view as a pose prior? ``python -m pipeline.evaluate.pose_prior --store S --queries Q``.
+
+On synthetic queries rendered at known cameras (:mod:`pipeline.evaluate.synth`), each answer's
+``best_view_pose`` rotation is compared with the true object-to-camera rotation (the geodesic angle between
+them). Per query it reports the error for the true model's best view (the prior a pose estimator gets once the
+right model is picked) and whether retrieval put that model first. Objects are grouped by geometric symmetry
+(:func:`symmetry_class`): for a body of revolution the angle about its axis cannot be told from shape, so
+its error is also reported modulo that rotation.
+
+The true camera: synth places it on the ray (azimuth, elevation) aimed at the object, rolled by
+``roll_deg`` about its optical axis, then slides it sideways (which does not rotate it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.mesh import frames
+from pipeline.mesh.cameras import look_at_pose
+
+#: a shape is a body of revolution about an axis when turning it 45 and 90 degrees about that axis moves
+#: its surface points by less than this fraction of its diameter (mean nearest-point distance)
+RADIAL_TOL = 0.01
+THRESHOLD_DEG = 30.0
+
+
+def true_camera_gl(azimuth_deg: float, elevation_deg: float, roll_deg: float) -> np.ndarray:
+    """Camera-to-world pose (OpenGL, normalised frame, translation irrelevant) of a synth query."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    direction = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    pose = look_at_pose(direction, 3.0)
+    r = math.radians(roll_deg)
+    roll = np.array([[math.cos(r), -math.sin(r), 0.0], [math.sin(r), math.cos(r), 0.0], [0.0, 0.0, 1.0]])
+    pose[:3, :3] = pose[:3, :3] @ roll
+    return pose
+
+
+def _axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    t = math.radians(angle_deg)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * k @ k
+
+
+def symmetry_class(vertices: np.ndarray) -> tuple[str, np.ndarray | None]:
+    """("radial", axis) for a body of revolution, ("spherical", None), or ("none", None), from the shape alone.
+
+    Texture is ignored: a soup can is radial here even though its label fixes the angle about its axis.
+    """
+    from scipy.spatial import cKDTree
+
+    v = np.asarray(vertices, np.float64)
+    if len(v) > 3000:
+        v = v[np.linspace(0, len(v) - 1, 3000).astype(int)]
+    centre = v.mean(axis=0)
+    p = v - centre
+    diameter = 2.0 * float(np.linalg.norm(p, axis=1).max())
+    tree = cKDTree(p)
+    _, vecs = np.linalg.eigh(p.T @ p)
+    radial = []
+    for axis in vecs.T:
+        moved = [tree.query(p @ _axis_rotation(axis, a).T)[0].mean() / diameter for a in (45.0, 90.0)]
+        radial.append(max(moved) < RADIAL_TOL)
+    if all(radial):
+        return "spherical", None
+    if any(radial):
+        return "radial", vecs.T[int(np.argmax(radial))]
+    return "none", None
+
+
+def rotation_errors(r_est: np.ndarray, r_true: np.ndarray, sym: str, axis_src: np.ndarray | None) -> tuple:
+    """(error, error modulo the shape's symmetry) in degrees between two object-to-camera rotations.
+
+    ``axis_src``: the symmetry axis in the source frame (radial objects); spherical shapes have no
+    shape-defined orientation (modulo error 0).
+    """
+    err = frames.rotation_angle_deg(r_est, r_true)
+    if sym == "spherical":
+        return err, 0.0
+    if sym == "radial" and axis_src is not None:
+        best = min(
+            frames.rotation_angle_deg(r_est @ _axis_rotation(axis_src, a), r_true)
+            for a in np.arange(0, 360, 1.0)
+        )
+        return err, best
+    return err, err
+
+
+def evaluate(retriever, queries: list[dict], top: int = 5, progress: bool = False) -> list[dict]:
+    """One row per query: the true model's best-view error (None when it is not in the top ``top``)."""
+    import trimesh
+
+    from pipeline.progress import iterate
+
+    rows, shapes = [], {}
+    for q in iterate(queries, "pose prior", unit="query", enabled=progress):
+        expected = q["expected"][0]
+        try:
+            mesh = retriever.mesh(expected)
+        except Exception:  # a query of a mesh this store does not hold
+            continue
+        if expected not in shapes:
+            loaded = trimesh.load(str(Path(mesh["library_root"]) / mesh["source_path"]), process=False)
+            geoms = loaded.dump() if isinstance(loaded, trimesh.Scene) else [loaded]
+            shapes[expected] = symmetry_class(np.concatenate([g.vertices for g in geoms]))
+        sym, axis = shapes[expected]
+        result = retriever.query(q["image"], q["prompt"], mask=q.get("mask"), top=top)
+        names = [c.mesh_id for c in result.candidates]
+        row = {
+            "query_id": q["query_id"],
+            "name": mesh["name"],
+            "symmetry": sym,
+            "top1": names[:1] == [expected],
+        }
+        row.update(error_deg=None, error_sym_deg=None, best_view=None)
+        if expected in names:
+            cand = result.candidates[names.index(expected)]
+            if cand.best_view_pose is not None:
+                m = q["meta"]
+                info = frames.scale_to_metres(cand.units_guess)
+                norm = frames.normalisation(
+                    mesh["bounds_min"], mesh["bounds_max"], mesh["scale_to_unit"], mesh["format"], "auto"
+                )
+                gl = true_camera_gl(m["azimuth_deg"], m["elevation_deg"], m["roll_deg"])
+                r_true = frames.view_pose(gl, norm, info)[:3, :3]
+                r_est = np.asarray(cand.best_view_pose)[:3, :3]
+                err, err_sym = rotation_errors(r_est, r_true, sym, axis)
+                row.update(error_deg=round(err, 2), error_sym_deg=round(err_sym, 2), best_view=cand.best_view)
+        rows.append(row)
+    return rows
+
+
+def oracle_rows(retriever, queries: list[dict]) -> dict[str, float]:
+    """Per query, the smallest error any stored view of the true model achieves (the layout's floor)."""
+    out = {}
+    for q in queries:
+        expected = q["expected"][0]
+        try:
+            mesh = retriever.mesh(expected)
+        except Exception:
+            continue
+        m = q["meta"]
+        norm = frames.normalisation(
+            mesh["bounds_min"], mesh["bounds_max"], mesh["scale_to_unit"], mesh["format"], "auto"
+        )
+        u = frames.scale_to_metres(mesh["units_guess"])
+        r_true = frames.view_pose(
+            true_camera_gl(m["azimuth_deg"], m["elevation_deg"], m["roll_deg"]), norm, u
+        )
+        errs = [
+            frames.rotation_angle_deg(frames.view_pose(v["camera_pose"], norm, u)[:3, :3], r_true[:3, :3])
+            for v in retriever.view_poses([expected])
+        ]
+        if errs:
+            out[q["query_id"]] = min(errs)
+    return out
+
+
+def table(rows: list[dict], oracle: dict[str, float]) -> str:
+    """Markdown table: per symmetry class and overall, median error and the share within 30 degrees."""
+    lines = [
+        "| subset | queries | true model in top 5 | median error (deg) | within 30 deg | median mod symmetry "
+        "| within 30 deg mod sym | median best possible view |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    groups = [("all", rows), ("top-1 correct", [r for r in rows if r["top1"]])]
+    groups += [
+        (f"symmetry: {s}", [r for r in rows if r["symmetry"] == s]) for s in ("none", "radial", "spherical")
+    ]
+    for label, rs in groups:
+        if not rs:
+            continue
+        found = [r for r in rs if r["error_deg"] is not None]
+        e = np.array([r["error_deg"] for r in found])
+        es = np.array([r["error_sym_deg"] for r in found])
+        orc = np.array([oracle[r["query_id"]] for r in rs if r["query_id"] in oracle])
+
+        def med(a):
+            return f"{np.median(a):.1f}" if len(a) else "-"
+
+        def share(a):
+            return (
+                f"{int((a <= THRESHOLD_DEG).sum())}/{len(a)} ({100 * (a <= THRESHOLD_DEG).mean():.0f}%)"
+                if len(a)
+                else "-"
+            )
+
+        lines.append(
+            f"| {label} | {len(rs)} | {len(found)} | {med(e)} | {share(e)} | {med(es)} | {share(es)} | {med(orc)} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pipeline.cli_common import OneLineParser, fail, positive_int
+
+    p = OneLineParser(
+        prog="python -m pipeline.evaluate.pose_prior",
+        description="Rotation error of the best view's pose prior on synthetic queries at known cameras.",
+    )
+    p.add_argument("--store", required=True, help="store the queries were generated from")
+    p.add_argument("--queries", required=True, help="queries.jsonl written by pipeline.evaluate.synth")
+    p.add_argument("--top", type=positive_int, default=5, help="candidates per answer (default 5)")
+    p.add_argument("--limit", type=positive_int, help="only the first N queries")
+    p.add_argument("--out", help="write the per-query rows as JSONL here")
+    p.add_argument("--no-progress", action="store_true")
+    args = p.parse_args(argv)
+    from pipeline.query import Retriever
+    from pipeline.query.errors import QueryError
+
+    try:
+        lines = Path(args.queries).read_text().splitlines()
+    except OSError as exc:
+        return fail(f"cannot read {args.queries}: {exc.strerror or exc}")
+    queries = [json.loads(x) for x in lines if x.strip()][: args.limit]
+    if not queries or "meta" not in queries[0] or "roll_deg" not in queries[0]["meta"]:
+        return fail(f"{args.queries} has no synthetic queries with camera metadata (pipeline.evaluate.synth)")
+    try:
+        with Retriever.open(args.store, profile="auto") as r:
+            rows = evaluate(r, queries, args.top, progress=not args.no_progress)
+            oracle = oracle_rows(r, queries)
+    except QueryError as exc:
+        return fail(str(exc))
+    if args.out:
+        Path(args.out).write_text("".join(json.dumps(x) + "\n" for x in rows))
+    print(table(rows, oracle))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
