@@ -339,3 +339,71 @@ def test_service_meshes_sizes_metric_export_and_roi_mask(store, offline_models, 
             assert "mask_png_b64" not in plain["query"]["roi"]
     finally:
         service.close()
+
+
+# ---------------------------------------------------------------------------- python -m pipeline.handoff
+def test_handoff_turns_a_batch_into_bop_models_and_pose_priors(store, offline_models, tmp_path):
+    from PIL import Image
+    from query_helpers import render_query_view
+
+    from pipeline.handoff import cli as handoff_cli
+    from pipeline.handoff.priors import box_corners, projected_box
+    from pipeline.query import Retriever as RealRetriever
+    from pipeline.query.batch import run_batch
+
+    path, library = store
+    lines = []
+    for i, (rel, prompt) in enumerate(
+        [("hope/hope_000002.ply", "the bbq sauce"), (f"{MUSTARD}/textured.obj", "the mustard bottle")]
+    ):
+        img, mask = render_query_view(library / rel, resolution=160)
+        img.save(tmp_path / f"q{i}.png")
+        Image.fromarray(mask).save(tmp_path / f"m{i}.png")
+        lines.append(json.dumps({"id": f"q{i}", "image": f"q{i}.png", "mask": f"m{i}.png", "prompt": prompt}))
+    lines.append(json.dumps({"id": "bad", "image": "missing.png", "prompt": "x"}))
+    (tmp_path / "q.jsonl").write_text("\n".join(lines) + "\n")
+    with (
+        RealRetriever.open(path, profile="offline", models=offline_models) as r,
+        open(tmp_path / "a.jsonl", "w") as out,
+    ):
+        assert run_batch(r, tmp_path / "q.jsonl", out, progress=False, top=2) == (2, 1)
+    k = "200,200,79.5,79.5"
+    argv = ["--store", str(path), "--answers", str(tmp_path / "a.jsonl"), "--out", str(tmp_path / "bop")]
+    assert handoff_cli.main([*argv, "--hypotheses", "2", "--camera-k", k]) == 0
+    bop = tmp_path / "bop"
+    info = json.loads((bop / "models" / "models_info.json").read_text())
+    objects = json.loads((bop / "objects.json").read_text())
+    assert sorted(info) == sorted(objects) == ["1", "2"]
+    for obj_id, o in objects.items():
+        assert (bop / "models" / f"obj_{int(obj_id):06d}.ply").is_file()
+        assert [info[obj_id][f"size_{a}"] / 1000 for a in "xyz"] == pytest.approx(o["extent_m"], rel=1e-4)
+    priors = json.loads((bop / "priors.json").read_text())
+    assert [p["id"] for p in priors["priors"]] == ["q0", "q1"] and priors["skipped"][0]["id"] == "bad"
+    for p in priors["priors"]:
+        assert len(p["hypotheses"]) == 2 and p["cam_K"] == [200, 0, 79.5, 0, 200, 79.5, 0, 0, 1]
+        h = p["hypotheses"][0]
+        o = objects[str(h["obj_id"])]
+        rot = np.asarray(h["cam_R_m2c"]).reshape(3, 3)
+        assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) and h["translation_from"] == "roi_box"
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = rot, np.asarray(h["cam_t_m2c"]) / 1000.0
+        with RealRetriever.open(path, profile="offline", models=offline_models) as r:
+            rec = r.mesh(o["mesh_id"])
+        centre = (np.asarray(rec["bounds_min"]) + np.asarray(rec["bounds_max"])) / 2 * o["scale_to_metres"]
+        x0, y0, x1, y1 = projected_box(
+            box_corners(o["extent_m"], centre), pose, np.asarray(handoff_cli.parse_k(k))
+        )
+        bx0, by0, bx1, by1 = p["roi_box"]
+        # the hypothesis puts the model where the ROI is, about as large (its rotation is the view's)
+        size = np.hypot(bx1 - bx0, by1 - by0)
+        assert (
+            abs((x0 + x1) / 2 - (bx0 + bx1) / 2) < 0.1 * size
+            and abs((y0 + y1) / 2 - (by0 + by1) / 2) < 0.1 * size
+        )
+        assert 0.75 < np.hypot(x1 - x0, y1 - y0) / size < 1.33
+    assert handoff_cli.main([*argv, "--camera-k", "1,2,3"]) == 2
+    (tmp_path / "e.jsonl").write_text('{"id": 1, "error": "x"}\n')
+    assert (
+        handoff_cli.main(["--store", str(path), "--answers", str(tmp_path / "e.jsonl"), "--out", str(bop)])
+        == 2
+    )
