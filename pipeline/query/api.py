@@ -70,7 +70,7 @@ class Retriever:
         self._path = m.column("source_path").to_pylist()
         self._root = m.column("library_root").to_pylist()
         render = tables.onboarding.render_config()
-        self.handoff = HandOff(self.mesh, self.view_poses, render.up if render else "auto")
+        self.handoff = HandOff(self.mesh, self.view_poses, render.up if render else "auto", self._mesh_id)
 
     # ------------------------------------------------------------------ opening
     @classmethod

@@ -25,6 +25,8 @@ from pipeline.mesh import frames
 
 #: cached meshes' view cameras at most (a long-running service sees many different answers)
 MAX_CACHED = 4096
+#: libraries of at most this many meshes have every view camera read on the first answer (one scan)
+PRELOAD_MESHES = 2000
 
 
 def metric_units(fmt: str | None, units_guess: str | None) -> tuple[str, str] | None:
@@ -78,24 +80,32 @@ class HandOff:
     """
 
     def __init__(
-        self, meshes: Callable[[str], dict], fetch_views: Callable[[list[str]], list[dict]], up: str
+        self,
+        meshes: Callable[[str], dict],
+        fetch_views: Callable[[list[str]], list[dict]],
+        up: str,
+        all_mesh_ids: list[str] | None = None,
     ):
         self._mesh = meshes
         self._fetch = fetch_views
         self.up = up or "auto"
         self._views: dict[str, dict[int, dict]] = {}
         self._lock = threading.Lock()
+        small = all_mesh_ids is not None and len(all_mesh_ids) <= PRELOAD_MESHES
+        self._preload = list(all_mesh_ids) if small else None
 
     def views_of(self, mesh_ids: list[str]) -> dict[str, dict[int, dict]]:
-        """view_index -> camera row, per mesh (read once per mesh)."""
+        """view_index -> camera row, per mesh (read once per mesh; a small library all at once)."""
         with self._lock:
             todo = sorted({m for m in mesh_ids if m not in self._views})
+            if todo and self._preload is not None:
+                todo, self._preload = sorted(set(self._preload) | set(todo)), None
         if todo:
             found: dict[str, dict[int, dict]] = {m: {} for m in todo}
             for row in self._fetch(todo):
                 found[row["mesh_id"]][int(row["view_index"])] = row
             with self._lock:
-                if len(self._views) + len(found) > MAX_CACHED:
+                if self._views and len(self._views) + len(found) > MAX_CACHED:
                     self._views.clear()
                 self._views.update(found)
         with self._lock:
