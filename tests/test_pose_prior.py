@@ -67,8 +67,11 @@ def test_table_counts_within_threshold():
         {"query_id": "c", "symmetry": "none", "top1": True, "error_deg": None, "error_sym_deg": None},
     ]
     text = pose_prior.table(rows, {"a": 5.0, "b": 25.0, "c": 30.0})
-    assert "| all | 3 | 2 | 65.0 | 1/2 (50%) | 15.0 | 2/2 (100%) | 25.0 |" in text
-    assert "| symmetry: radial | 1 | 1 | 120.0 | 0/1 (0%) | 20.0 | 1/1 (100%) | 25.0 |" in text
+    assert (
+        "| all | 3 | 2 | 65.0 [10.0, 120.0] | 1/2 (50% [0, 100]) | 15.0 [10.0, 20.0] | 2/2 (100% [100, 100]) |"
+        in text
+    )
+    assert "| symmetry: radial | 1 | 1 | 120.0 [120.0, 120.0] | 0/1 (0% [0, 0]) | 20.0 [20.0, 20.0] |" in text
 
 
 def test_cli_refuses_a_file_without_synthetic_cameras(tmp_path, capsys):

@@ -171,8 +171,17 @@ def oracle_rows(retriever, queries: list) -> dict[str, float]:
     return out
 
 
+def bootstrap_ci(values: np.ndarray, stat, n: int = 2000, seed: int = 0) -> tuple[float, float]:
+    """95 % percentile-bootstrap interval of ``stat`` over ``values`` (queries resampled, seeded)."""
+    rng = np.random.default_rng(seed)
+    a = np.asarray(values, np.float64)
+    draws = [stat(a[rng.integers(0, len(a), len(a))]) for _ in range(n)]
+    return float(np.percentile(draws, 2.5)), float(np.percentile(draws, 97.5))
+
+
 def table(rows: list[dict], oracle: dict[str, float]) -> str:
-    """Markdown table: per symmetry class and overall, median error and the share within 30 degrees."""
+    """Markdown table: per symmetry class and overall, median error and the share within 30 degrees, with
+    95 % bootstrap intervals in brackets."""
     lines = [
         "| subset | queries | true model in top 5 | median error (deg) | within 30 deg | median mod symmetry "
         "| within 30 deg mod sym | median best possible view |",
@@ -191,14 +200,17 @@ def table(rows: list[dict], oracle: dict[str, float]) -> str:
         orc = np.array([oracle[r["query_id"]] for r in rs if r["query_id"] in oracle])
 
         def med(a):
-            return f"{np.median(a):.1f}" if len(a) else "-"
+            if not len(a):
+                return "-"
+            lo, hi = bootstrap_ci(a, np.median)
+            return f"{np.median(a):.1f} [{lo:.1f}, {hi:.1f}]"
 
         def share(a):
-            return (
-                f"{int((a <= THRESHOLD_DEG).sum())}/{len(a)} ({100 * (a <= THRESHOLD_DEG).mean():.0f}%)"
-                if len(a)
-                else "-"
-            )
+            if not len(a):
+                return "-"
+            lo, hi = bootstrap_ci(a, lambda x: 100 * (x <= THRESHOLD_DEG).mean())
+            n = int((a <= THRESHOLD_DEG).sum())
+            return f"{n}/{len(a)} ({100 * n / len(a):.0f}% [{lo:.0f}, {hi:.0f}])"
 
         lines.append(
             f"| {label} | {len(rs)} | {len(found)} | {med(e)} | {share(e)} | {med(es)} | {share(es)} | {med(orc)} |"
@@ -218,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--top", type=positive_int, default=5, help="candidates per answer (default 5)")
     p.add_argument("--limit", type=positive_int, help="only the first N queries")
     p.add_argument("--out", help="write the per-query rows as JSONL here")
+    p.add_argument("--rows", help="tabulate the rows an earlier run wrote with --out (no queries are run)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     from pipeline.evaluate.datasets import load_queries
@@ -231,12 +244,15 @@ def main(argv: list[str] | None = None) -> int:
     if not queries or "roll_deg" not in queries[0].meta:
         return fail(f"{args.queries} has no synthetic queries with camera metadata (pipeline.evaluate.synth)")
     try:
-        with Retriever.open(args.store, profile="auto") as r:
-            rows = evaluate(r, queries, args.top, progress=not args.no_progress)
+        with Retriever.open(args.store, profile="auto", preload=args.rows is None) as r:
+            if args.rows:
+                rows = [json.loads(x) for x in Path(args.rows).read_text().splitlines() if x.strip()]
+            else:
+                rows = evaluate(r, queries, args.top, progress=not args.no_progress)
             oracle = oracle_rows(r, queries)
-    except QueryError as exc:
+    except (QueryError, OSError, ValueError) as exc:
         return fail(str(exc))
-    if args.out:
+    if args.out and not args.rows:
         Path(args.out).write_text("".join(json.dumps(x) + "\n" for x in rows))
     print(table(rows, oracle))
     return 0
