@@ -140,7 +140,7 @@ def evaluate(retriever, queries: list, top: int = 5, progress: bool = False) -> 
                 r_true = frames.view_pose(gl, norm, info)[:3, :3]
                 r_est = np.asarray(cand.best_view_pose)[:3, :3]
                 err, err_sym = rotation_errors(r_est, r_true, sym, axis)
-                row.update(error_deg=round(err, 2), error_sym_deg=round(err_sym, 2), best_view=cand.pose_view)
+                row.update(error_deg=round(err, 2), error_sym_deg=round(err_sym, 2), best_view=cand.best_view)
         rows.append(row)
     return rows
 

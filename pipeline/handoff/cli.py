@@ -135,7 +135,6 @@ def _run(args, k, answers: list[dict], skipped: list[dict]) -> int:
                     "rank": c["rank"],
                     "score": c.get("score") if c.get("score") is not None else c.get("image_score"),
                     "best_view": c["best_view"],
-                    "pose_view": c.get("pose_view"),
                     **h,
                 }
             )

@@ -284,7 +284,7 @@ class Retriever:
         try:
             if mode == "image-only":
                 result = self._rank_image_only(emb, top, tau, fallback_k, w, timings, unit, views, verify)
-                self.handoff.fill(result.candidates, self._verified_views(emb, result.candidates))
+                self.handoff.fill(result.candidates)  # issue 19: the pose-estimator hand-off
                 return result
             text_only = mode == "text-only"
             s1 = self.text_filter.run(
@@ -322,19 +322,8 @@ class Retriever:
             result.view_ranking = self._caption_ranking(stage1_vector(emb, w), s1.mesh_idx)
         elif views:
             result.view_ranking = _view_ranking(s1.mesh_idx, s2, s1.scores)
-        self.handoff.fill(result.candidates, self._verified_views(emb, result.candidates))  # issue 19
+        self.handoff.fill(result.candidates)  # issue 19: the pose-estimator hand-off
         return result
-
-    def _verified_views(self, emb: QueryEmbedding, candidates: list[Candidate]) -> dict[str, int]:
-        """mesh_id -> the view with the most verification inliers, for the candidates verified with any."""
-        if not hasattr(self, "_row_of"):
-            self._row_of = {m: j for j, m in enumerate(self._mesh_id)}
-        out = {}
-        for c in candidates:
-            hit = emb.inliers.get(self._row_of[c.mesh_id]) if c.inliers else None
-            if hit is not None and hit[0] > 0 and hit[1] is not None:
-                out[c.mesh_id] = int(hit[1])
-        return out
 
     def _caption_ranking(self, vec, mesh_idx: np.ndarray) -> ViewRanking:
         """Every caption row of ``mesh_idx`` by its own stage-1 cosine (text-only's view-level ranking)."""

@@ -265,7 +265,7 @@ def _side_outputs(retriever, result, args) -> dict:
         best = result.best
         if best is None:
             raise QueryError("no model to export: the query matched nothing")
-        prior = {k: getattr(best, k) for k in ("best_view", "pose_view", "best_view_pose", "intrinsics")}
+        prior = {k: getattr(best, k) for k in ("best_view", "best_view_pose", "intrinsics")}
         done = export_model(
             retriever.mesh(best.mesh_id),
             args.export,

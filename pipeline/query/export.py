@@ -112,7 +112,6 @@ def model_info(mesh, metric, units, factor, size, file, prior) -> dict:
     }
     prior = prior or {}
     out["best_view"] = prior.get("best_view")
-    out["pose_view"] = prior.get("pose_view", prior.get("best_view"))  # the view best_view_pose is of
     out["best_view_pose"] = prior.get("best_view_pose")  # metres, whatever the export's units
     out["intrinsics"] = prior.get("intrinsics")
     if (

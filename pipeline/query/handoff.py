@@ -7,9 +7,7 @@ Per candidate (see docs/query.md, "Hand-off to a pose estimator"):
   whose longest side exceeds 20 file units for millimetres; OBJ, PLY, STL and OFF carry no units);
 * ``scale_to_metres``: the factor that turns the file's coordinates into metres;
 * ``extent_m``: the axis-aligned size (x, y, z) of the source mesh in metres;
-* ``pose_view``: the view the pose is of: the one with the most local-feature inliers when the candidate
-  was verified with any, else the stage-2 ``best_view``;
-* ``best_view_pose``: 4x4, source frame in metres -> camera of ``pose_view``, OpenCV axes;
+* ``best_view_pose``: 4x4, source frame in metres -> camera of the best-matching view, OpenCV axes;
 * ``intrinsics``: ``{"K": 3x3, "width", "height"}`` of that view.
 
 The geometry is :mod:`pipeline.mesh.frames`; this module only picks the store's numbers. Views' cameras are
@@ -113,21 +111,14 @@ class HandOff:
         with self._lock:
             return {m: self._views.get(m, {}) for m in mesh_ids}
 
-    def fill(self, candidates: list, verified_views: dict[str, int] | None = None) -> None:
-        """Set each candidate's units, scale, size, pose view, its pose and intrinsics in place.
-
-        ``verified_views``: mesh_id -> the view with the most local-feature inliers; that view's camera is
-        the pose prior when given (on synthetic queries it is closer to the true rotation than the
-        stage-2 best view: docs/results.md, section 6), else the stage-2 ``best_view``'s.
-        """
+    def fill(self, candidates: list) -> None:
+        """Set each candidate's units, scale, size, best-view pose and intrinsics in place."""
         views = self.views_of([c.mesh_id for c in candidates])
         for c in candidates:
             mesh = self._mesh(c.mesh_id)
             for key, value in metric_info(mesh).items():
                 setattr(c, key, value)
-            index = (verified_views or {}).get(c.mesh_id, c.best_view)
-            view = views.get(c.mesh_id, {}).get(index) if index is not None else None
+            view = views.get(c.mesh_id, {}).get(c.best_view) if c.best_view is not None else None
             prior = view_prior(mesh, view, self.up) if view is not None else None
             if prior is not None:
-                c.pose_view = index
                 c.best_view_pose, c.intrinsics = prior["best_view_pose"], prior["intrinsics"]

@@ -49,9 +49,10 @@ class Candidate:
     units_from: str | None = None  # "gltf" (the format says metres) | "extent" (a guess from the size)
     scale_to_metres: float | None = None  # file coordinates * this = metres
     extent_m: list[float] | None = None  # axis-aligned size (x, y, z) of the source mesh in metres
-    pose_view: int | None = None  # the view best_view_pose is of: most verification inliers, else best_view
-    best_view_pose: list[list[float]] | None = None  # 4x4: source frame (m) -> pose_view's camera (OpenCV)
-    intrinsics: dict | None = None  # {"K": 3x3, "width", "height"} of pose_view
+    best_view_pose: list[list[float]] | None = (
+        None  # 4x4: source frame in metres -> best view's camera (OpenCV)
+    )
+    intrinsics: dict | None = None  # {"K": 3x3, "width", "height"} of the best view
 
     def to_dict(self) -> dict:
         return asdict(self)

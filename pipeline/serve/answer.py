@@ -44,11 +44,7 @@ def export_zip(retriever, mesh_id: str, units: str, fmt: str, view: int | None) 
         rows = [v for v in retriever.view_poses([mesh_id]) if v["view_index"] == view]
         if not rows:
             raise HTTPException(404, f"mesh {mesh_id} has no view {view}")
-        prior = {
-            "best_view": view,
-            "pose_view": view,
-            **(view_prior(rec, rows[0], retriever.handoff.up) or {}),
-        }
+        prior = {"best_view": view, **(view_prior(rec, rows[0], retriever.handoff.up) or {})}
     with tempfile.TemporaryDirectory(prefix="oscar-export-") as tmp:
         try:
             done = export_model(rec, tmp, units=units, fmt=fmt, prior=prior)
