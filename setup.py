@@ -9,6 +9,6 @@ from setuptools import find_packages, setup
 setup(
     packages=find_packages(include=["pipeline", "pipeline.*"]) + ["pipeline._sql"],
     package_dir={"pipeline._sql": "sql"},
-    package_data={"pipeline": ["py.typed", "serve/static/*"], "pipeline._sql": ["**/*.sql"]},
+    package_data={"pipeline": ["py.typed", "serve/static/*", "query/calibration/*.json"], "pipeline._sql": ["**/*.sql"]},
     include_package_data=False,
 )

@@ -61,6 +61,19 @@ def fail(message: str, code: int = 2) -> int:
     return code
 
 
+def reader_gone() -> int:
+    """After ``BrokenPipeError`` on stdout (``... | head``): point stdout at /dev/null, so that the flush
+    at exit raises nothing either, and return 0: the reader stopped on purpose."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout is not a file descriptor (tests): nothing to flush
+        pass
+    return 0
+
+
 # ---------------------------------------------------------------- argparse value types
 # Each returns a callable for ``type=``; a bad value becomes argparse's one-line
 # ``error: argument --x: ...`` with exit code 2, before anything is loaded or written.

@@ -2,10 +2,12 @@
 
 Per table: when some rows are superseded (same key as a later row: ``--force`` re-runs, retried meshes)
 the table is rewritten with its latest rows (one Delta overwrite commit); otherwise Delta's ``optimize``
-merges its small files. Then ``vacuum`` deletes the files that the log marked as removed more than
-``--retention-hours`` ago (default 7 days): a reader that opened an older snapshot keeps answering until
-then. Vacuum only deletes files the log names as removed, never files it merely does not know, and it
-runs only on tables whose files all check out. Runs under the store's writer lock.
+merges its small files. Once every table is compacted, ``vacuum`` deletes the files that the log marked as removed more
+than ``--retention-hours`` ago (default 7 days), except the files of every table version that a live
+reader lease holds (:mod:`pipeline.leases`: the query service, open Retrievers, the SQL shell), whatever
+the retention; it says which leases held files back, and removes expired leases. Vacuum only deletes
+files the log names as removed, never files it merely does not know, and it runs only on tables whose
+files all check out. Runs under the store's writer lock.
 """
 
 from __future__ import annotations
@@ -54,18 +56,47 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
     }
 
 
-def vacuum_dataset(store: Store, dataset: str, retention_hours: float, orphans: bool = False) -> int:
+def vacuum_dataset(
+    store: Store, dataset: str, retention_hours: float, orphans: bool = False, leases: list | None = None
+) -> int:
     """Delete files the log removed more than ``retention_hours`` ago (with ``orphans``, also files no
-    commit names that are that old: left by killed writers); return how many."""
+    commit names that are that old: left by killed writers), sparing the files of the versions that
+    ``leases`` (:class:`~pipeline.leases.LeaseInfo`) hold; return how many were deleted."""
+    return vacuum_report(store, dataset, retention_hours, orphans, leases or [])[0]
+
+
+def vacuum_report(
+    store: Store, dataset: str, retention_hours: float, orphans: bool, leases: list
+) -> tuple[int, int, list[str]]:
+    """Vacuum ``dataset`` sparing the leased versions: (files deleted, files kept for leases, the
+    leases that kept some)."""
     store.check_files(dataset)  # never act on a log whose files do not check out
     dt = store.delta(dataset)
-    gone = dt.vacuum(
-        retention_hours=int(retention_hours),
-        dry_run=False,
-        enforce_retention_duration=False,
-        full=orphans,
-    )
-    return len(gone)
+    keep = sorted({v for lease in leases for v in lease.versions.get(dataset, ()) if v <= dt.version()})
+    args = {"retention_hours": int(retention_hours), "enforce_retention_duration": False, "full": orphans}
+    held, holders = 0, []
+    if keep:
+        spared = set(dt.vacuum(dry_run=True, **args)) - set(
+            dt.vacuum(dry_run=True, keep_versions=keep, **args)
+        )
+        held = len(spared)
+        if spared:
+            holders = [lease.describe() for lease in leases if _needs(dt, dataset, lease, spared)]
+    gone = dt.vacuum(dry_run=False, keep_versions=keep or None, **args)
+    return len(gone), held, holders
+
+
+def _needs(dt, dataset: str, lease, files: set[str]) -> bool:
+    """Whether ``lease`` holds a version of ``dt`` that references one of ``files`` (relative paths)."""
+    from deltalake import DeltaTable
+
+    for v in lease.versions.get(dataset, ()):
+        if v > dt.version():
+            continue
+        paths = DeltaTable(dt.table_uri, version=v).get_add_actions(flatten=True).column("path").to_pylist()
+        if files.intersection(paths):
+            return True
+    return False
 
 
 def auto_compact(store: Store, run_id: str, threshold: int = AUTO_COMPACT_FILES) -> list[str]:
@@ -91,8 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         "--retention-hours",
         type=float_range(0.0),
         default=DEFAULT_RETENTION_HOURS,
-        help="vacuum files removed longer ago than this (default: %(default)s = 7 days); "
-        "readers that opened the store earlier than this may fail afterwards",
+        help="vacuum files removed longer ago than this (default: %(default)s = 7 days), except files "
+        "that live reader leases still read (services, open Retrievers, sql sessions)",
     )
     p.add_argument("--no-vacuum", action="store_true", help="compact only; delete no files")
     p.add_argument(
@@ -102,22 +133,32 @@ def main(argv: list[str] | None = None) -> int:
         "run `python -m pipeline.fsck STORE` first: a lost log entry makes committed files look orphaned",
     )
     args = p.parse_args(argv)
+    from pipeline.leases import live_leases, remove_expired
     from pipeline.store import StoreError
 
     run_id = new_run_id()
     try:
         with Store.open(args.store, writable=True) as store:
-            for dataset in store.all_datasets():
-                r = compact_dataset(store, dataset, run_id)
-                vac = (
-                    0
-                    if args.no_vacuum
-                    else vacuum_dataset(store, dataset, args.retention_hours, args.remove_orphans)
-                )
-                print(
+            # every table first: a reader that leases after the vacuum below read the leases then sees
+            # (and leases) the compacted versions (pipeline.snapshot.open_snapshot)
+            done = [(dataset, compact_dataset(store, dataset, run_id)) for dataset in store.all_datasets()]
+            for dataset, r in done:
+                line = (
                     f"{dataset}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows "
-                    f"({r['dropped']} superseded dropped), {vac} old files vacuumed"
+                    f"({r['dropped']} superseded dropped)"
                 )
+                if not args.no_vacuum:
+                    leases = live_leases(store.root)  # read per table: the freshest view of the readers
+                    n, held, holders = vacuum_report(
+                        store, dataset, args.retention_hours, args.remove_orphans, leases
+                    )
+                    line += f", {n} old files vacuumed"
+                    if held:
+                        line += f", {held} kept for live readers: {', '.join(holders)}"
+                print(line)
+            if not args.no_vacuum:
+                for lease in remove_expired(store.root):
+                    print(f"expired reader lease {lease.describe()} ignored and removed")
     except StoreError as exc:
         return fail(str(exc))
     except Exception as exc:  # noqa: BLE001 - delta-rs reports a full disk as DeltaError "(os error 28)"

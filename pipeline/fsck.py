@@ -134,13 +134,23 @@ def check_views(store: Store, report: Report) -> None:
 
 
 def runs_versions(store: Store) -> list[str]:
-    """``version  time  run_id  status`` of each commit of the runs table (for ``--as-of``)."""
+    """A header, then ``version  recorded at (UTC)  run_id  status`` per commit of the runs table: the
+    versions ``--as-of`` takes."""
+    from datetime import datetime, timezone
+
     dt = store.delta("runs")
     if dt is None:
-        return []
-    rows = []
+        return ["no runs recorded yet"]
+    runs = store.read("runs", columns=["run_id", "status"]).to_pylist()
+    status = {r["run_id"]: r["status"] for r in runs}
+    rows = [f"{'version':>7}  {'recorded at (UTC)':<23}  {'run_id':<29}  status"]
     for h in sorted(dt.history(), key=lambda h: h["version"]):
-        rows.append(f"{h['version']:>6}  {h['timestamp']}  {h.get('oscar_run_id', '')}  {h['operation']}")
+        at = datetime.fromtimestamp(h["timestamp"] / 1000, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[
+            :-3
+        ]
+        run_id = h.get("oscar_run_id") or ""
+        what = status.get(run_id) or h["operation"].lower()
+        rows.append(f"{h['version']:>7}  {at:<23}  {run_id:<29}  {what}")
     return rows
 
 

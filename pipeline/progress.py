@@ -4,8 +4,9 @@ On a terminal (stderr is a TTY): tqdm bars. Otherwise (cron, a pipe, a log file)
 no escape codes, only plain lines: one when a stage starts, at most one every ``interval`` seconds while
 it runs, and one when it is done (counts and seconds), e.g.::
 
-    [progress] render: start, 4 meshes
-    [progress] render: done, 4/4 meshes in 6.9s
+    [progress] render: start, 78 meshes
+    [progress] render: 31/78 meshes, 60.2s, 0.51 meshes/s, ETA 1m 31s
+    [progress] render: done, 78/78 meshes in 151.0s (0.52 meshes/s)
 """
 
 from __future__ import annotations
@@ -44,16 +45,33 @@ def plural(unit: str) -> str:
     return unit + "s"
 
 
+def duration(seconds: float) -> str:
+    """``42s``, ``3m 05s``, ``2h 07m``: a readable span for an ETA."""
+    s = int(round(seconds))
+    if s < 60:
+        return f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m {s % 60:02d}s"
+    return f"{s // 3600}h {s % 3600 // 60:02d}m"
+
+
 class LineBar:
-    """A progress bar that writes plain lines: start, a throttled count, done with counts and seconds."""
+    """A progress bar that writes plain lines: start, a throttled count with rate and ETA, done with
+    counts, seconds and rate."""
 
     def __init__(
-        self, name: str, total: int | None, unit: str, stream: IO | None = None, interval: float = INTERVAL_S
+        self,
+        name: str,
+        total: int | None,
+        unit: str,
+        stream: IO | None = None,
+        interval: float = INTERVAL_S,
+        clock=time.monotonic,
     ):
-        self.name, self.total, self.unit, self.interval = name, total, unit, interval
+        self.name, self.total, self.unit, self.interval, self.clock = name, total, unit, interval, clock
         self.stream = sys.stderr if stream is None else stream
         self.n, self.closed = 0, False
-        self.t0 = self.last_print = time.monotonic()
+        self.t0 = self.last_print = clock()
         self.t_last = self.t0
         self._line(f"start, {total} {plural(unit)}" if total is not None else "start")
 
@@ -64,18 +82,26 @@ class LineBar:
     def _line(self, text: str) -> None:
         print(f"[progress] {self.name}: {text}", file=self.stream, flush=True)
 
+    def _rate(self, elapsed: float) -> str:
+        return f"{self.n / elapsed:.2f} {plural(self.unit)}/s" if elapsed > 0 else f"? {plural(self.unit)}/s"
+
     def update(self, n: int = 1) -> None:
         self.n += n
-        now = time.monotonic()
+        now = self.clock()
         self.t_last = now
         if now - self.last_print >= self.interval:
             self.last_print = now
-            self._line(f"{self._count()}, {now - self.t0:.1f}s")
+            elapsed = now - self.t0
+            text = f"{self._count()}, {elapsed:.1f}s, {self._rate(elapsed)}"
+            if self.total is not None and self.n and elapsed > 0:
+                text += f", ETA {duration(max(0, self.total - self.n) * elapsed / self.n)}"
+            self._line(text)
 
     def close(self) -> None:
         if not self.closed:
             self.closed = True
-            self._line(f"done, {self._count()} in {self.t_last - self.t0:.1f}s")
+            elapsed = self.t_last - self.t0
+            self._line(f"done, {self._count()} in {elapsed:.1f}s ({self._rate(elapsed)})")
 
 
 class _Off:

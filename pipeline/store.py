@@ -12,7 +12,9 @@ Every commit is one Delta transaction on one table. :meth:`Store.commit` writes 
 :data:`TABLE_ORDER` (upstream first, ``runs`` last); rows are keyed by (``mesh_id``, stage fingerprint)
 and the latest ``run_id`` per key wins, so a writer killed between two tables' commits leaves only work
 the next run redoes (or rows that readers dedupe). A reader pins each table's version when it first
-touches it; compaction never deletes the files of a pinned snapshot before the vacuum retention period.
+touches it, or all at once (:meth:`Store.pin`, :mod:`pipeline.snapshot`); compaction never deletes the
+files of a pinned snapshot before the vacuum retention period, nor while a reader lease holds it
+(:mod:`pipeline.leases`).
 One writer at a time (``_lock``); a second one gets a clear error.
 """
 
@@ -121,9 +123,11 @@ class Store:
         self.root = root
         self.writable = writable
         self.as_of = as_of
+        self._as_of_run: str | None = None  # the run whose record the as_of state ends with
         self._lock_fd: int | None = None
         self._tables: dict[str, object] = {}  # dataset -> DeltaTable (pinned at first use) or None
         self._files: dict[tuple[str, int], list[tuple[Path, int]]] = {}  # (dataset, version) -> files
+        self._pins: dict[str, int] | None = None  # dataset -> version read (see pin); None: latest
 
     # ----------------------------------------------------------------- opening
     @classmethod
@@ -191,10 +195,10 @@ class Store:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
+            holder = lock_holder(fd)
             os.close(fd)
-            raise StoreError(
-                f"{self.root} is locked by another writer (onboarding or compact running?)"
-            ) from None
+            raise StoreError(f"{self.root} is locked by another writer: {holder}") from None
+        write_lock_holder(fd)
         self._lock_fd = fd
 
     def refresh(self, dataset: str | None = None) -> None:
@@ -203,6 +207,12 @@ class Store:
             self._tables.clear()
         else:
             self._tables.pop(dataset, None)
+
+    def pin(self, versions: dict[str, int]) -> None:
+        """Read every table at ``versions`` (dataset -> Delta version) from now on; a dataset not named
+        reads as absent. One consistent snapshot of the whole store (:mod:`pipeline.snapshot`)."""
+        self._pins = dict(versions)
+        self._tables.clear()
 
     # ----------------------------------------------------------------- tables
     def path_of(self, dataset: str) -> Path:
@@ -242,8 +252,11 @@ class Store:
         log = path / DELTA_LOG
         if not any(log.iterdir()):
             return None  # created, never committed (a writer killed before its first commit)
+        pinned = None if self._pins is None else self._pins.get(dataset)
+        if self._pins is not None and pinned is None:
+            return None  # the table did not exist yet in the pinned snapshot
         try:
-            dt = DeltaTable(str(path))
+            dt = DeltaTable(str(path), version=pinned)
         except Exception as exc:  # noqa: BLE001 - deltalake raises several error types
             raise corrupt(
                 self.root, f"{_bad_log_file(log)}: damaged Delta log ({_first_line(exc)[:80]})"
@@ -252,10 +265,10 @@ class Store:
         if gap != log:
             raise corrupt(self.root, f"{gap}: missing Delta log entry (table {dataset})")
         if self.as_of is not None:
-            try:
-                dt.load_as_version(self.as_of)
-            except Exception:  # noqa: BLE001 - the table did not exist yet at that time
-                return None
+            version = version_at(dt, self._as_of_run, self.as_of)
+            if version is None:
+                return None  # the table did not exist yet then
+            dt.load_as_version(version)
         return dt
 
     def version(self, dataset: str) -> int | None:
@@ -419,7 +432,10 @@ class Store:
         return sum(1 for _, size in self.files(dataset) if size < small_bytes)
 
     def _resolve_as_of(self, as_of: int | str | datetime) -> datetime:
-        """A runs-table version or a time -> the commit time every table is loaded at."""
+        """A runs-table version or a time -> the commit of ``runs`` that the store is read as of: the
+        version itself, or the last run recorded at or before the time (never a run's half-written
+        batches: a run's record is its last commit). Every table is then loaded at its last commit up to
+        that run (:func:`version_at`)."""
         if isinstance(as_of, str):
             text = as_of.strip()
             if text.isdigit():
@@ -429,16 +445,71 @@ class Store:
                     as_of = datetime.fromisoformat(text.replace("Z", "+00:00"))
                 except ValueError:
                     raise StoreError(f"--as-of expects a runs version or an ISO time, got {text!r}") from None
-        if isinstance(as_of, datetime):
-            return as_of if as_of.tzinfo else as_of.replace(tzinfo=timezone.utc)
         runs = self.delta("runs")
         if runs is None:
             raise StoreError(f"store {self.root} has no runs yet: nothing to travel to")
-        history = {h["version"]: h for h in runs.history()}
-        if int(as_of) not in history:
-            raise StoreError(f"no runs version {as_of}: versions are 0..{runs.version()}")
+        history = sorted(runs.history(), key=lambda h: h["version"])
+        if isinstance(as_of, datetime):
+            at = as_of if as_of.tzinfo else as_of.replace(tzinfo=timezone.utc)
+            done = [h for h in history if h["timestamp"] <= at.timestamp() * 1000]
+            if not done:
+                first = _ms_time(history[0]["timestamp"]).isoformat(timespec="seconds")
+                raise StoreError(
+                    f"--as-of {at.isoformat(timespec='seconds')} is before the first run of store {self.root} "
+                    f"(recorded at {first}): nothing to travel to"
+                )
+            entry = done[-1]
+        else:
+            entry = next((h for h in history if h["version"] == int(as_of)), None)
+            if entry is None:
+                raise StoreError(f"no runs version {as_of}: versions are 0..{runs.version()}")
         self._tables.clear()
-        return datetime.fromtimestamp(history[int(as_of)]["timestamp"] / 1000, tz=timezone.utc)
+        self._as_of_run = entry.get("oscar_run_id")
+        return _ms_time(entry["timestamp"])
+
+
+def _ms_time(ms: int) -> datetime:
+    return datetime.fromtimestamp(ms / 1000, tz=timezone.utc)
+
+
+def version_at(dt, run_id: str | None, at: datetime) -> int | None:
+    """The last version of a Delta table committed up to run ``run_id`` (run ids sort in commit order:
+    one writer at a time), or, for commits that do not name their run, up to the time ``at``; ``None``
+    when the table had no commit yet."""
+    ms = at.timestamp() * 1000
+    ok = [
+        h["version"]
+        for h in dt.history()
+        if (h["oscar_run_id"] <= run_id if run_id and h.get("oscar_run_id") else h["timestamp"] <= ms)
+    ]
+    return max(ok) if ok else None
+
+
+def write_lock_holder(fd: int) -> None:
+    """Write who holds the lock (pid, host, command, since) into the lock file, for the next writer's error."""
+    import socket
+    import sys
+
+    argv = getattr(sys, "orig_argv", sys.argv)
+    command = " ".join(" ".join([Path(argv[0]).name, *argv[1:]]).split())[:200] if argv else "?"
+    info = {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "command": command,
+        "since": utcnow().isoformat(),
+    }
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps(info).encode(), 0)
+
+
+def lock_holder(fd: int) -> str:
+    """Who holds the lock, as the holder wrote it (:func:`write_lock_holder`), in words."""
+    try:
+        info = json.loads(os.pread(fd, 4096, 0) or b"{}")
+        since = datetime.fromisoformat(info["since"]).strftime("%Y-%m-%d %H:%M:%S UTC")
+        return f"pid {info['pid']} on {info['host']} ({info['command']}), since {since}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "a process that did not say who it is (onboarding or compact running?)"
 
 
 def store_version(root: str | os.PathLike) -> tuple | None:

@@ -40,3 +40,32 @@ def count(store_path, dataset: str) -> int:
 
 def table(store_path, dataset: str) -> pa.Table:
     return Store.open(store_path).read(dataset)
+
+
+def assert_same_tables(store_a, store_b, atol: float = 1e-5) -> None:
+    """The two stores hold the same rows (run-dependent columns aside); embedding vectors may differ by
+    ``atol``: a text encoder's float results depend slightly on how captions were batched."""
+    import numpy as np
+
+    a, b = Store.open(store_a), Store.open(store_b)
+    for table in (
+        "meshes",
+        "views",
+        "captions",
+        "view_features",
+        "errors",
+        "text_embeddings",
+        "image_embeddings",
+    ):
+        assert a.datasets(table) == b.datasets(table), table
+        for d in a.datasets(table):
+            ta, tb = (s.read_latest(d) if table != "errors" else s.read(d) for s in (a, b))
+            drop = [c for c in ta.column_names if c in VOLATILE]
+            ta, tb = ta.drop_columns(drop), tb.drop_columns(drop)
+            key = [c for c in ta.column_names if c in ("mesh_id", "view_index", "fingerprint", "source_path")]
+            ta, tb = ta.sort_by([(k, "ascending") for k in key]), tb.sort_by([(k, "ascending") for k in key])
+            if "embedding" in ta.column_names:
+                va, vb = (np.array(t.column("embedding").to_pylist(), dtype=np.float64) for t in (ta, tb))
+                assert va.shape == vb.shape and np.allclose(va, vb, atol=atol), d
+                ta, tb = ta.drop_columns(["embedding"]), tb.drop_columns(["embedding"])
+            assert ta.to_pylist() == tb.to_pylist(), d

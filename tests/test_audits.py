@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import pytest
+from tiny_store import TinyStore
 
 from pipeline.db import audit_names, connect
-from pipeline.sql.fixtures import TinyStore
 from pipeline.sql.session import run_audit, set_variables
 
-OLD_RUN = "20240101T000000000000Z-aaaaaa"  # sorts before fixtures.RUN
+OLD_RUN = "20240101T000000000000Z-aaaaaa"  # sorts before tiny_store.RUN
 
 
 def audit(store, name: str, **variables) -> list[dict]:

@@ -1,5 +1,6 @@
-"""The package's shape: every module imports, no import circles, no private names across modules, and
-the onboarding stages declared once (pipeline/onboard/stages/__init__.py)."""
+"""The package's shape: every module imports, no import circles, no private names across modules, the
+onboarding stages declared once (pipeline/onboard/stages/__init__.py), and the query wing's ranking steps
+listed once (pipeline/query/steps/__init__.py), none of them importing the API."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parent.parent / "pipeline"
 STAGE_DECLARATION = PACKAGE / "onboard" / "stages" / "__init__.py"
+STEP_DECLARATION = PACKAGE / "query" / "steps" / "__init__.py"
 
 
 def module_name(path: Path) -> str:
@@ -28,13 +30,13 @@ def is_type_checking(node: ast.If) -> bool:
     )
 
 
-def runtime_imports(tree: ast.AST):
+def runtime_imports(tree: ast.AST, typing_too: bool = False):
     """Import nodes anywhere in the module (function-level ones too), except ``if TYPE_CHECKING:``
-    blocks, which never run."""
+    blocks, which never run (``typing_too``: those as well)."""
     stack = [tree]
     while stack:
         node = stack.pop()
-        if isinstance(node, ast.If) and is_type_checking(node):
+        if isinstance(node, ast.If) and is_type_checking(node) and not typing_too:
             stack.extend(node.orelse)
             continue
         if isinstance(node, ast.Import | ast.ImportFrom):
@@ -52,12 +54,13 @@ def resolve_from(mod: str, node: ast.ImportFrom) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def graph() -> tuple[dict[str, set[str]], list[str]]:
-    """Module -> the package's modules it imports; and every private name imported across modules."""
+def graph(typing_too: bool = False) -> tuple[dict[str, set[str]], list[str]]:
+    """Module -> the package's modules it imports (``typing_too``: type-checking imports as well); and
+    every private name imported across modules."""
     edges: dict[str, set[str]] = {m: set() for m in MODULES}
     private: list[str] = []
     for mod, path in MODULES.items():
-        for node in runtime_imports(ast.parse(path.read_text(), str(path))):
+        for node in runtime_imports(ast.parse(path.read_text(), str(path)), typing_too):
             if isinstance(node, ast.Import):
                 edges[mod] |= {a.name for a in node.names if a.name in MODULES}
                 continue
@@ -120,6 +123,49 @@ def test_no_import_cycles():
         "pipeline.onboard.engines.base"
     }  # the graph sees imports
     assert cycles(edges) == []
+
+
+def test_no_import_cycles_even_for_type_checking():
+    """Type-only imports close no circle either (the stages read their config through a protocol)."""
+    edges, _ = graph(typing_too=True)
+    assert "pipeline.onboard.config" in edges["pipeline.onboard.engines.base"]
+    assert cycles(edges) == []
+
+
+def reachable_from_entry_points(edges: dict[str, set[str]]) -> set[str]:
+    """Modules the ``oscar`` command and ``python -m pipeline...`` can load: imports, modules named in
+    strings (the verb table, the model adapter registry), each package's ``__main__`` and parents."""
+    for mod, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in MODULES:
+                edges[mod].add(node.value)
+    seen: set[str] = set()
+    stack = ["pipeline", "pipeline.cli", "pipeline.__main__"]
+    while stack:
+        mod = stack.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        stack.extend(edges[mod])
+        if f"{mod}.__main__" in MODULES:
+            stack.append(f"{mod}.__main__")
+        parts = mod.split(".")
+        stack.extend(".".join(parts[:i]) for i in range(1, len(parts)))
+    return seen
+
+
+def test_package_ships_no_test_only_code():
+    """Every module of the package is reachable from its commands: code only tests use lives in tests/."""
+    edges, _ = graph()
+    assert set(MODULES) - reachable_from_entry_points(edges) == set()
+    assert not [m for m in MODULES if "fixture" in m or m.split(".")[-1].startswith("test")]
+
+
+def test_reachability_sees_an_orphan():
+    edges = graph()[0]
+    edges["pipeline.sql.fixtures"] = {"pipeline.store"}  # imports the package; nothing imports it
+    reached = reachable_from_entry_points(edges)
+    assert "pipeline.sql.fixtures" not in reached and "pipeline.sql.cli" in reached
 
 
 def test_cycle_finder_finds_cycles():
@@ -244,3 +290,83 @@ def test_profile_and_fingerprints_resolved_once_per_run(tmp_path, offline_models
     summary = onboard(lib, tmp_path / "store", offline_models, render=RenderConfig(resolution=64))
     assert summary.rendered == 1 and summary.captioned == 1
     assert calls == {"get_profile": 1, "fingerprint": 1}
+
+
+# ---------------------------------------------------------------- the query wing: ranking as a list of steps
+def step_modules() -> set[str]:
+    """The ranking step modules: every module of pipeline/query/steps/ but the declaration and the state."""
+    folder = STEP_DECLARATION.parent
+    return {module_name(p) for p in folder.glob("*.py") if p.name not in ("__init__.py", "state.py")}
+
+
+def reachable(edges: dict[str, set[str]], start: str) -> set[str]:
+    """Every module ``start`` imports, directly or through others."""
+    seen, todo = set(), [start]
+    while todo:
+        for dep in edges[todo.pop()] - seen:
+            seen.add(dep)
+            todo.append(dep)
+    return seen
+
+
+def sequence_literals(path: Path, names: set[str]) -> list[str]:
+    """Tuple, list or set literals in ``path`` that name two or more of ``names``."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Tuple | ast.List | ast.Set):
+            named = {e.value for e in node.elts if isinstance(e, ast.Constant) and e.value in names}
+            if len(named) >= 2:
+                found.append(f"{path.name}:{node.lineno}: {sorted(named)}")
+    return found
+
+
+def test_ranking_steps_do_not_import_the_api():
+    edges, _ = graph()
+    assert "pipeline.query.steps" in edges["pipeline.query.api"]  # the graph sees the step package
+    steps = [m for m in MODULES if m.startswith("pipeline.query.steps")]
+    assert len(steps) > 5
+    for mod in steps:
+        assert "pipeline.query.api" not in reachable(edges, mod), mod
+
+
+def test_step_lists_are_the_only_place_steps_are_listed():
+    from pipeline.query.modes import MODES
+    from pipeline.query.steps import STEP_LISTS
+
+    assert tuple(STEP_LISTS) == MODES  # the modes are the step lists
+    modules = step_modules()
+    listed = {step.run.__module__ for steps in STEP_LISTS.values() for step in steps}
+    assert listed == modules  # every step module is in a list, and every list entry is a step module
+    for steps in STEP_LISTS.values():
+        for step in steps:
+            assert step.run is importlib.import_module(step.run.__module__).run  # each module's one entry
+    edges, _ = graph()
+    importers = {mod for mod, deps in edges.items() if deps & modules}
+    assert importers == {"pipeline.query.steps"}  # nothing else (nor another step) imports a step
+    # the modes are written out once (pipeline/query/modes.py, for --help), and as the declaration's keys
+    allowed = {STEP_DECLARATION, PACKAGE / "query" / "modes.py"}
+    assert sequence_literals(PACKAGE / "query" / "modes.py", set(MODES))  # the check sees them
+    elsewhere = [
+        hit for path in MODULES.values() if path not in allowed for hit in sequence_literals(path, set(MODES))
+    ]
+    assert elsewhere == []
+
+
+def test_the_api_holds_no_ranking_logic():
+    """api.py opens the store and the models and hands them to the steps: no array maths, no mode branches."""
+    path = PACKAGE / "query" / "api.py"
+    tree = ast.parse(path.read_text())
+    imported = {
+        a.name.split(".")[0] for n in runtime_imports(tree) if isinstance(n, ast.Import) for a in n.names
+    }
+    imported |= {
+        (n.module or "").split(".")[0] for n in runtime_imports(tree) if isinstance(n, ast.ImportFrom)
+    }
+    assert not imported & {"numpy", "torch"}
+    modes = [
+        n.lineno
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Compare)
+        and any(isinstance(c, ast.Constant) and c.value in ("text-only", "image-only") for c in n.comparators)
+    ]
+    assert modes == []

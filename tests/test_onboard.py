@@ -150,7 +150,7 @@ def test_modified_added_removed_files(tmp_path, offline_models):
     obj.write_text(obj.read_text().replace("v ", "v  ", 1))
     shutil.rmtree(lib / MESHES[1])
     copy_ycb(lib, [MESHES[2]])
-    summary = onboard(lib, store, offline_models)
+    summary = onboard(lib, store, offline_models, allow_removal=True)  # 1 of 2 vanished: over the guard
     assert summary.added == 2 and summary.removed == 2 and summary.rendered == 2
 
     from pipeline.onboard.plan import mesh_state

@@ -66,6 +66,7 @@ def test_wheel_ships_every_sql_file_and_the_oscar_script(wheel):
     assert _check_lock().check_wheel(str(wheel)) == []
     names = zipfile.ZipFile(wheel).namelist()
     assert "pipeline/py.typed" in names
+    assert "pipeline/query/calibration/offline.json" in names  # the open-set acceptance calibration
     assert not [n for n in names if n.startswith("sql/")]  # inside the package, not a top-level "sql" package
 
 

@@ -1,5 +1,5 @@
 """The pose-prior evaluation's parts: shape symmetry classes, the synthetic query's true camera, and the
-rotation error modulo a symmetry axis (the run itself: docs/results.md, section 6)."""
+rotation error modulo a symmetry axis (the run itself: docs/results.md, section 7)."""
 
 from __future__ import annotations
 

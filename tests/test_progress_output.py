@@ -12,7 +12,7 @@ import sys
 import pytest
 from conftest import REPO, SAMPLE_LIBRARY
 
-from pipeline.progress import LineBar, iterate, plural, stage_bars
+from pipeline.progress import LineBar, duration, iterate, plural, stage_bars
 
 
 def _onboard(lib, store, env, *extra):
@@ -36,9 +36,27 @@ def test_line_bar_prints_start_throttled_counts_and_done():
     b.close()  # idempotent
     lines = out.getvalue().splitlines()
     assert lines[0] == "[progress] render: start, 3 meshes"
-    assert re.fullmatch(r"\[progress\] render: 2/3 meshes, \d+\.\ds", lines[1])
-    assert re.fullmatch(r"\[progress\] render: done, 3/3 meshes in \d+\.\ds", lines[-1]) and len(lines) == 4
+    assert re.fullmatch(r"\[progress\] render: 2/3 meshes, \d+\.\ds, [\d.?]+ meshes/s(, ETA \d+s)?", lines[1])
+    assert re.fullmatch(r"\[progress\] render: done, 3/3 meshes in \d+\.\ds \([\d.?]+ meshes/s\)", lines[-1])
+    assert len(lines) == 4
     assert (plural("query"), plural("view"), plural("mesh")) == ("queries", "views", "meshes")
+
+
+def test_line_bar_rate_and_eta():
+    out, now = io.StringIO(), [100.0]
+    b = LineBar("render", 78, "mesh", stream=out, interval=60.0, clock=lambda: now[0])
+    now[0] = 130.0
+    b.update(15)  # throttled: no line yet
+    now[0] = 160.0
+    b.update(15)
+    now[0] = 256.0
+    b.update(48)
+    b.close()
+    lines = out.getvalue().splitlines()
+    assert lines[1] == "[progress] render: 30/78 meshes, 60.0s, 0.50 meshes/s, ETA 1m 36s"
+    assert lines[2] == "[progress] render: 78/78 meshes, 156.0s, 0.50 meshes/s, ETA 0s"
+    assert lines[3] == "[progress] render: done, 78/78 meshes in 156.0s (0.50 meshes/s)"
+    assert [duration(s) for s in (42, 185, 7620)] == ["42s", "3m 05s", "2h 07m"]
 
 
 def test_off_a_terminal_no_bars_and_disabled_prints_nothing(capsys):

@@ -86,12 +86,12 @@ def test_view_level_ranking_lists_every_view_by_score(retriever):
         )
         assert len(vr.mesh_idx) == n_items == len(vr.scores), mode  # every reference view / caption row
         assert np.all(np.diff(vr.scores) <= 1e-6) or vr.tiebreak is not None, mode
-        assert retriever._mesh_id[vr.mesh_idx[0]] == "id-red_can", mode
+        assert retriever.mesh_ids[vr.mesh_idx[0]] == "id-red_can", mode
         best = {c.mesh_id: c for c in r.candidates}
         if mode != "text-only":  # a mesh's score is the max over its views
             for j in set(vr.mesh_idx.tolist()):
                 top_view = vr.scores[vr.mesh_idx == j].max()
-                assert best[retriever._mesh_id[j]].image_score == pytest.approx(float(top_view), abs=1e-5)
+                assert best[retriever.mesh_ids[j]].image_score == pytest.approx(float(top_view), abs=1e-5)
     assert retriever.rank(emb).view_ranking is None  # only on request
 
 

@@ -128,7 +128,7 @@ def test_detector_and_segmenter_path(store, tiny, photo):
                 "grounding_dino", tiny["detector"], {"box_threshold": 1.0, "text_threshold": 1.0, **CPU}
             ),
         )
-        r._models["detector"] = strict
+        r.models.adapters["detector"] = strict
         with pytest.raises(QueryError, match="no object matching 'the red can' was detected"):
             r.query(img, "the red can")
 

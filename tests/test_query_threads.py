@@ -52,4 +52,4 @@ def test_reopened_sees_new_commits_and_shares_models(tmp_path):
         with r.reopened() as r2:
             assert r2.n_meshes == 5 and not r2.is_stale()
             assert r2.model("text_encoder") is r.model("text_encoder")
-            assert "purple_thing" in [r2.mesh(m)["name"] for m in r2._mesh_id]
+            assert "purple_thing" in [r2.mesh(m)["name"] for m in r2.mesh_ids]

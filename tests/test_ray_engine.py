@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import shutil
 
-import numpy as np
 import pytest
 from conftest import SAMPLE_LIBRARY
+from ray_helpers import assert_same_store
 
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.config import OnboardConfig
@@ -19,7 +19,6 @@ ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip ins
 pytestmark = pytest.mark.ray
 
 MESHES = ["005_tomato_soup_can", "006_mustard_bottle", "011_banana"]
-VOLATILE = {"run_id", "seen_at", "at"}
 RAY = RayOptions(render_batch_size=1, caption_batch_size=2, embed_batch_size=2, max_retries=1)
 
 
@@ -31,40 +30,6 @@ def config(engine: str, **kw) -> OnboardConfig:
 
 def onboard(library, store, engine: str, **kw):
     return run_onboarding(str(library), str(store), config(engine, **kw), progress=False)
-
-
-def store_rows(path) -> dict[str, list[dict]]:
-    """Latest rows of every dataset (all errors rows), run-dependent columns dropped, in a stable order."""
-    s = Store.open(path)
-    out = {}
-    for table in (
-        "meshes",
-        "views",
-        "captions",
-        "errors",
-        "text_embeddings",
-        "image_embeddings",
-        "view_features",
-    ):
-        for d in s.datasets(table):
-            t = s.read_latest(d) if table != "errors" else s.read(d)
-            t = t.drop_columns([c for c in t.column_names if c in VOLATILE])
-            rows = t.to_pylist()
-            out[d] = sorted(rows, key=lambda r: repr({k: v for k, v in r.items() if k != "embedding"}))
-    return out
-
-
-def assert_same_store(a, b) -> None:
-    """Equal tables; embedding vectors equal up to float32 rounding (the text encoder pads per batch)."""
-    ra, rb = store_rows(a), store_rows(b)
-    assert sorted(ra) == sorted(rb)
-    for dataset, rows in ra.items():
-        assert len(rows) == len(rb[dataset]), dataset
-        for x, y in zip(rows, rb[dataset], strict=True):
-            ex, ey = x.pop("embedding", None), y.pop("embedding", None)
-            assert x == y, dataset
-            if ex is not None:
-                assert np.allclose(ex, ey, atol=1e-6), dataset
 
 
 class Interrupt:
@@ -89,7 +54,10 @@ class Interrupt:
 def ray_session():
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, logging_level="warning", log_to_driver=False)
+        # address="local": a private instance, never a cluster another job left running on this machine
+        ray.init(
+            address="local", num_cpus=2, include_dashboard=False, logging_level="warning", log_to_driver=False
+        )
     yield
     if started:
         ray.shutdown()
@@ -216,3 +184,26 @@ def test_layout_shares_the_cluster():
     assert eight.caption_gpus == pytest.approx(7.5 / 8) and eight.render_workers == 10
     fixed = plan_layout(RayOptions(gpus_per_actor=1), cpus=64, gpus=8, n_caption=2, n_embed=4, n_render=10)
     assert fixed.caption_gpus == fixed.embed_gpus == 1
+
+
+def test_node_that_cannot_read_the_library_is_one_clear_error(ray_session, library, tmp_path, monkeypatch):
+    """The library vanishes from the workers' view after the driver planned (an unmounted share on a
+    node): one error naming the node and the path, no mesh failed."""
+    from pipeline.onboard.engines import base
+    from pipeline.onboard.engines.ray_cluster import LibraryUnreachableError
+
+    lib = tmp_path / "lib"
+    shutil.copytree(library, lib)
+    real = base.make_plan
+
+    def plan_then_unmount(store, root, run):
+        plan = real(store, root, run)
+        lib.rename(tmp_path / "unmounted")
+        return plan
+
+    monkeypatch.setattr(base, "make_plan", plan_then_unmount)
+    pattern = rf"^Ray node \S+ \([0-9a-f]{{8}}\) cannot read the library at {lib} \(no such folder\)"
+    with pytest.raises(LibraryUnreachableError, match=pattern) as exc:
+        onboard(lib, tmp_path / "store", "ray")
+    assert "\n" not in str(exc.value)
+    assert Store.open(tmp_path / "store").read("errors").num_rows == 0

@@ -10,9 +10,9 @@ import sys
 
 import duckdb
 import pytest
+from tiny_store import TinyStore
 
 from pipeline.sql.cli import main
-from pipeline.sql.fixtures import TinyStore
 
 
 @pytest.fixture

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import duckdb
 import pytest
+from tiny_store import TinyStore
 
 from pipeline.db import connect, load_sql, relation_name, view_files, view_names
-from pipeline.sql.fixtures import TinyStore
 
 LATER = "20250101T000000000000Z-zzzzzz"
 

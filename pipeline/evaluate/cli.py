@@ -21,6 +21,7 @@ from pipeline.cli_common import (
     number_list,
     positive_int,
 )
+from pipeline.query.modes import MODES
 
 OFFLINE_NOTE = (
     "Offline profile: attribute captioner + MiniLM text encoder + classical image descriptor, no downloaded "
@@ -46,7 +47,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m pipeline.evaluate",
         description="Evaluate retrieval on a query set: the paper's metrics, tau/top-k/mode/ROI sweeps, "
         "prompt styles, and a report (metrics.json, report.md, report.html, plots, failure gallery). "
-        "`python -m pipeline.evaluate synth --help` writes a synthetic query set.",
+        "`python -m pipeline.evaluate synth --help` writes a synthetic query set; "
+        "`python -m pipeline.evaluate openset --help` calibrates open-set acceptance; "
+        "`python -m pipeline.evaluate pose_prior --help` measures the best view's pose prior.",
     )
     p.add_argument("--store", required=True, metavar="STORE_DIR", help="onboarded store to query")
     src = p.add_argument_group("queries")
@@ -116,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_args(p)
     p.add_argument("--device", help="torch device for the paper profile (default: cuda when available)")
     base = p.add_argument_group("base setting")
-    base.add_argument("--mode", default="two-stage", choices=["two-stage", "text-only", "image-only"])
+    base.add_argument("--mode", default="two-stage", choices=MODES)
     base.add_argument(
         "--tau",
         type=float_range(-1.0, 1.0),
@@ -190,6 +193,14 @@ def main(argv: list[str] | None = None) -> int:
         from pipeline.evaluate.synth_cli import main as synth_main
 
         return synth_main(argv[1:])
+    if argv[:1] == ["openset"]:
+        from pipeline.evaluate.openset_cli import main as openset_main
+
+        return openset_main(argv[1:])
+    if argv[:1] == ["pose_prior"]:
+        from pipeline.evaluate.pose_prior import main as pose_prior_main
+
+        return pose_prior_main(argv[1:])
     args = build_parser().parse_args(argv)
     if not args.queries and not args.synthetic:
         return fail("give --queries PATH or --synthetic N")

@@ -86,16 +86,24 @@ def rank_histogram(ranks: list[int | None], path: Path, title: str) -> Path | No
     if not ranks:
         return None
     plt = _plt()
-    labels = [str(i) for i in range(1, 11)] + [">10", "not returned"]
+    fig = rank_histogram_figure(ranks, title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def rank_histogram_figure(ranks: list[int | None], title: str):
+    """The figure of :func:`rank_histogram` (its tick labels never overlap: the long ones wrap)."""
+    plt = _plt()
+    labels = [str(i) for i in range(1, 11)] + [">10", "not\nreturned"]
     counts = [0] * len(labels)
     for r in ranks:
         counts[-1 if r is None else (r - 1 if r <= 10 else 10)] += 1
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    ax.bar(labels, counts, color="#4c72b0")
+    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    ax.bar(range(len(labels)), counts, color="#4c72b0")
+    ax.set_xticks(range(len(labels)), labels, fontsize=9)
     ax.set_xlabel("rank of the expected model")
     ax.set_ylabel("queries")
     ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig

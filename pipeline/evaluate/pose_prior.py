@@ -1,4 +1,4 @@
-"""How good is the best view as a pose prior? ``python -m pipeline.evaluate.pose_prior --store S --queries Q``.
+"""How good is the best view as a pose prior? ``python -m pipeline.evaluate pose_prior --store S --queries Q``.
 
 On synthetic queries rendered at known cameras (:mod:`pipeline.evaluate.synth`), each answer's
 ``best_view_pose`` rotation is compared with the true object-to-camera rotation (the geodesic angle between
@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -222,11 +221,11 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.cli_common import OneLineParser, fail, positive_int
 
     p = OneLineParser(
-        prog="python -m pipeline.evaluate.pose_prior",
+        prog="python -m pipeline.evaluate pose_prior",
         description="Rotation error of the best view's pose prior on synthetic queries at known cameras.",
     )
     p.add_argument("--store", required=True, help="store the queries were generated from")
-    p.add_argument("--queries", required=True, help="queries.jsonl written by pipeline.evaluate.synth")
+    p.add_argument("--queries", required=True, help="queries.jsonl written by pipeline.evaluate synth")
     p.add_argument("--top", type=positive_int, default=5, help="candidates per answer (default 5)")
     p.add_argument("--limit", type=positive_int, help="only the first N queries")
     p.add_argument("--out", help="write the per-query rows as JSONL here")
@@ -256,7 +255,3 @@ def main(argv: list[str] | None = None) -> int:
         Path(args.out).write_text("".join(json.dumps(x) + "\n" for x in rows))
     print(table(rows, oracle))
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -18,8 +18,8 @@ from pipeline.evaluate import metrics_paper
 from pipeline.evaluate.datasets import Query
 from pipeline.evaluate.engine import Embedded, Engine, Ranked, Setting
 from pipeline.evaluate.library import Library
+from pipeline.query.modes import MODES
 
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 DEFAULT_TAUS = tuple(round(0.10 + 0.05 * i, 2) for i in range(12))  # 0.10 .. 0.65
 DEFAULT_TOP_KS = (5, 10, 15, 20, 25, 30, 35, 40)

@@ -21,8 +21,19 @@ from pipeline.cli_common import (
 from pipeline.threads import add_torch_threads_arg
 
 
+def share(text: str) -> float:
+    """``type=`` for ``--max-removed``: ``10%`` or ``0.1``."""
+    from pipeline.onboard.guard import parse_share
+
+    try:
+        return parse_share(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     from pipeline.onboard.config import DEFAULT_MAX_TEXTURE_PIXELS
+    from pipeline.onboard.guard import DEFAULT_MAX_REMOVED
     from pipeline.onboard.stages import STAGE_NAMES
     from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES
 
@@ -112,6 +123,20 @@ def build_parser() -> argparse.ArgumentParser:
         "--retry-failed", action="store_true", help="retry meshes that failed with the same config"
     )
     p.add_argument(
+        "--max-removed",
+        type=share,
+        default=DEFAULT_MAX_REMOVED,
+        metavar="SHARE",
+        help="removal guard: stop, committing nothing, when the run would mark more than this share of the "
+        f"library's active files removed, e.g. 10%% or 0.1 (default: {DEFAULT_MAX_REMOVED * 100:g}%%); a library "
+        "that yields no file at all always stops",
+    )
+    p.add_argument(
+        "--allow-removal",
+        action="store_true",
+        help="turn the removal guard off for this run (files were removed on purpose)",
+    )
+    p.add_argument(
         "--local-features",
         default="sift",
         choices=["sift", "orb", "none"],
@@ -160,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.onboard.engines.ray_options import RayOptions
     from pipeline.profiles import default_elevations
 
+    if Path(args.library).exists() and not Path(args.library).is_dir():
+        return fail(f"library path {args.library} is a file: give the folder that holds the meshes")
     if not Path(args.library).is_dir():
         return fail(f"library folder not found: {args.library}")
     if args.torch_threads is not None:  # unset: torch's own default (every core)
@@ -185,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
             workers=args.workers,
             batch_size=args.batch_size,
             retry_failed=args.retry_failed,
+            max_removed=args.max_removed,
+            allow_removal=args.allow_removal,
             force=tuple(args.force),
             engine=args.engine,
             features=FeatureConfig(detector=args.local_features, max_keypoints=args.max_keypoints),
@@ -203,17 +232,29 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.models.registry import ModelLoadError
     from pipeline.onboard.engines.ray import RayEngineError
     from pipeline.onboard.engines.render_pool import RenderSetupError
+    from pipeline.onboard.guard import RemovalGuardError
+    from pipeline.onboard.interrupt import RunInterrupted
     from pipeline.onboard.run import run_onboarding
     from pipeline.store import StoreError
 
     try:
         summary = run_onboarding(args.library, args.store, cfg, progress=not args.no_progress)
+    except RemovalGuardError as exc:
+        return fail(str(exc), 3)
+    except RunInterrupted as exc:
+        return fail(str(exc), exc.exit_code)
     except (StoreError, ModelLoadError, RenderSetupError, RayEngineError) as exc:
         return fail(str(exc))
     except OSError as exc:  # a library or store file system failing outside a commit
         return fail(f"I/O error on the store or library: {type(exc).__name__}: {str(exc).splitlines()[0]}")
     except KeyboardInterrupt:
-        return fail("interrupted: committed batches are kept; run the same command again to resume", 130)
+        return fail(
+            "interrupted at once: the meshes committed so far are kept; run the same command again to do "
+            "the rest",
+            130,
+        )
+    for line in summary.warnings:
+        print(f"warning: {line}", file=sys.stderr)
     if args.json:
         print(json.dumps(summary.to_dict(), indent=2))
     else:

@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pipeline.localfeat.config import FeatureConfig
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.engines.ray_options import RayOptions
+from pipeline.onboard.guard import DEFAULT_MAX_REMOVED
 from pipeline.onboard.stages import STAGE_NAMES, Step, resolve_steps
 from pipeline.profiles import DEFAULT_PROMPT_STYLE, PROMPT_STYLES, Profile, default_elevations, get_profile
 
@@ -34,6 +35,8 @@ class OnboardConfig:
     model_options: dict[str, dict] = field(default_factory=dict)  # per-role extra adapter options
     ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
     features: FeatureConfig = field(default_factory=FeatureConfig)  # local features per view (verification)
+    max_removed: float = DEFAULT_MAX_REMOVED  # removal guard: share of active files a run may remove
+    allow_removal: bool = False  # removal guard off (--allow-removal)
 
     def __post_init__(self) -> None:
         if self.render is None:
@@ -49,6 +52,8 @@ class OnboardConfig:
         for name in ("max_faces", "max_texture_pixels", "batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 0.0 <= self.max_removed <= 1.0:
+            raise ValueError(f"max_removed must be a share within 0..1, got {self.max_removed}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
         bad = [s for s in self.force if s not in STAGE_NAMES]
@@ -114,5 +119,6 @@ class RunSpec:
             "features": asdict(cfg.features),
             "max_faces": cfg.max_faces,
             "render_timeout_s": cfg.render_timeout_s,
+            "removal_guard": {"max_removed": cfg.max_removed, "allow_removal": cfg.allow_removal},
             "fingerprints": self.fingerprints,
         }

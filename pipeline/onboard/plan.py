@@ -31,6 +31,10 @@ class Plan:
     skipped: int = 0  # meshes with nothing left to do
     failed_before: int = 0  # meshes skipped because they failed with the same config before
     n_hashed: int = 0
+    n_active_before: int = 0  # files of this library that were active before the run
+    n_vanished: int = 0  # of those, files the library no longer yields (the removal guard counts them)
+    restored: int = 0  # new paths whose mesh was onboarded before (a library that came back)
+    restored_unchanged: int = 0  # meshes of those with nothing left to do (not counted as unchanged)
 
     def file_of(self) -> dict[str, FoundFile]:
         """mesh_id -> the first file (in library order) with that content: the one rendered."""
@@ -116,6 +120,9 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
             new_paths.setdefault(f.mesh_id, []).append(f)
 
     plan = Plan(root, files, errors, removed_rows, new_paths, n_hashed=n_hashed)
+    active = {p for p, r in current.items() if r["status"] == "active"}
+    plan.n_active_before = len(active)
+    plan.n_vanished = len({p for p in active if p not in seen_paths and p not in bad_paths})
     cfg = run.cfg
     failed = failed_ids(store) if not cfg.retry_failed else {}
     force = set(cfg.force)
@@ -135,6 +142,8 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
         plan.todo[step.key] = (need & ok) - failed.get(step.fingerprint, set())
     need_render = plan.todo[run.source.key]
     plan.render = [m for m in ids if m in need_render]
+    back = {m for m in new_paths if m not in need_render and m not in bad_render}
+    plan.restored = sum(len(new_paths[m]) for m in back)
     for f in files:  # a failed mesh that is rendered again gets a fresh meshes row (active or failed)
         row = current.get(f.source_path)
         if (
@@ -149,5 +158,6 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
     plan.failed_before = len(
         {m for m in ids if m in bad_render or any(m in failed.get(fp, ()) for fp in fps)} - busy
     )
-    plan.skipped = len(set(ids) - busy)
+    plan.restored_unchanged = len(back - busy)
+    plan.skipped = len(set(ids) - busy) - plan.restored_unchanged
     return plan

@@ -10,6 +10,8 @@ from pipeline import schemas
 from pipeline.onboard.config import OnboardConfig, RunSpec
 from pipeline.onboard.engines.base import Engine, RunSummary
 from pipeline.onboard.engines.local import LocalEngine
+from pipeline.onboard.guard import RemovalGuardError
+from pipeline.onboard.interrupt import RunInterrupted, StopFlag, StopRequested, stop_on_signals
 from pipeline.store import Store, new_run_id, utcnow
 
 
@@ -34,20 +36,51 @@ def run_onboarding(
 
     ``models`` (role -> adapter) replaces the profile's models in the local engine (tests)."""
     spec = cfg.resolve()  # the profile and fingerprints, once for the whole run
+    flag = StopFlag()
+    with stop_on_signals(flag):
+        return _run(library, store_path, cfg, spec, flag, progress, models)
+
+
+def _run(
+    library: str, store_path: str, cfg: OnboardConfig, spec: RunSpec, flag: StopFlag, progress: bool, models
+) -> RunSummary:
     store = Store.open(store_path, create=True, writable=True)
     run_id = new_run_id()
     started = utcnow()
     summary = RunSummary(run_id, status="interrupted")
+    engine: Engine | None = None
     try:
-        summary = make_engine(store, spec, run_id, progress, models).run(library)
+        engine = make_engine(store, spec, run_id, progress, models)
+        engine.stop = flag
+        flag.check()
+        summary = engine.run(library)
+        if flag.requested and engine.left():  # it ended early on the stop request: not finished
+            raise StopRequested(flag.signum)
         summary.status = "ok"
+    except RemovalGuardError as exc:
+        summary = _status(exc.summary or summary, "refused", engine)
+        raise
+    except StopRequested as exc:
+        summary = _status(engine and engine.summary or summary, "interrupted", engine)
+        if engine is None:
+            raise RunInterrupted(exc.args[0], 0, 0, 0, summary) from None
+        raise engine.interrupted(exc.args[0]) from None
+    except KeyboardInterrupt:
+        summary = _status(engine and engine.summary or summary, "interrupted", engine)
+        raise
+    except BaseException:
+        summary = _status(engine and engine.summary or summary, "failed", engine)
+        raise
     finally:
+        config = {**spec.describe(), "cluster": summary.cluster()}
+        if summary.removal_guard:
+            config["removal_guard"] = {**config["removal_guard"], **summary.removal_guard}
         row = {
             "run_id": run_id,
             "engine": cfg.engine,
             "library_root": str(library),
             "profile": cfg.profile,
-            "config_json": json.dumps(spec.describe(), default=str),
+            "config_json": json.dumps(config, default=str),
             "started_at": started,
             "finished_at": utcnow(),
             "n_files": summary.n_files,
@@ -69,4 +102,13 @@ def run_onboarding(
                 raise
         finally:
             store.close()
+    return summary
+
+
+def _status(summary: RunSummary, status: str, engine: Engine | None) -> RunSummary:
+    """``summary`` marked with the status of a run that did not finish (``refused``, ``interrupted``,
+    ``failed``), with the seconds spent so far: only runs with status ``ok`` decide what is current."""
+    summary.status = status
+    if engine is not None:
+        summary.seconds = {k: round(v, 3) for k, v in engine.seconds.items()}
     return summary

@@ -6,10 +6,13 @@ import argparse
 import sys
 
 from pipeline.cli_common import OneLineParser, add_read_model_args, fail, float_range, int_range, positive_int
+from pipeline.query.modes import MODES
 from pipeline.threads import add_torch_threads_arg
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from pipeline.query.settings import PROFILE_SETTINGS
+
     p = OneLineParser(
         prog="python -m pipeline.query",
         description="Find the CAD model in an onboarded store that matches the object a prompt names in a photo.",
@@ -40,14 +43,15 @@ def build_parser() -> argparse.ArgumentParser:
     how.add_argument(
         "--mode",
         default="two-stage",
-        choices=["two-stage", "text-only", "image-only"],
+        choices=MODES,
         help="paper ablations",
     )
     how.add_argument(
         "--threshold",
         type=float_range(-1.0, 1.0),
         metavar="TAU",
-        help="stage-1 tau (default: paper 0.37, offline 0.50; see docs/query.md)",
+        help=f"stage-1 tau (default: paper {PROFILE_SETTINGS['paper'].threshold:g}, offline "
+        f"{PROFILE_SETTINGS['offline'].threshold:g}; see docs/query.md)",
     )
     how.add_argument(
         "--fallback-k",
@@ -67,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--prompt-weight",
         type=float_range(0.0, 1.0),
         metavar="W",
-        help="weight of the prompt in the stage-1 query vector (offline default 0.5, paper 0)",
+        help="weight of the prompt in the stage-1 query vector (offline default "
+        f"{PROFILE_SETTINGS['offline'].prompt_weight:g}, paper {PROFILE_SETTINGS['paper'].prompt_weight:g})",
     )
     how.add_argument(
         "--verify",
@@ -81,6 +86,19 @@ def build_parser() -> argparse.ArgumentParser:
         type=int_range(0, 1000),
         metavar="N",
         help="candidates verified by local features, 0..1000 (default 20)",
+    )
+    how.add_argument(
+        "--accept-threshold",
+        type=float_range(0.0, 1.0),
+        metavar="P",
+        help="open-set operating point: accept the best model when its confidence is at least P "
+        "(default: the calibration's; docs/query.md, Open-set answers)",
+    )
+    how.add_argument(
+        "--accept-model",
+        metavar="CALIBRATION.json",
+        help="acceptance calibration (default: the one shipped for the profile; written by "
+        "`python -m pipeline.evaluate openset`)",
     )
     how.add_argument(
         "--top", type=positive_int, default=5, metavar="N", help="how many models to list (default 5)"
@@ -216,6 +234,7 @@ def _run(args: argparse.Namespace) -> int:
         "prompt_weight": args.prompt_weight,
         "verify": args.verify,
         "verify_top": args.verify_top,
+        "accept_model": args.accept_model,
     }
     retriever = open_retriever(args, settings_changes=settings_changes)
     rank_args = {
@@ -225,6 +244,7 @@ def _run(args: argparse.Namespace) -> int:
         "fallback_k": args.fallback_k,
         "fallback_unit": args.fallback_unit,
         "top": args.top,
+        "accept_threshold": args.accept_threshold,
     }
     with retriever:
         if args.queries:

@@ -8,3 +8,11 @@ class QueryError(ValueError):
 
     def __init__(self, message: str) -> None:
         super().__init__(" ".join(str(message).split()))
+
+
+class StoreUnavailable(RuntimeError):
+    """The store changed under a query and its newest committed snapshot could not answer either; retry
+    later (the service answers 503 with ``Retry-After``). ``str(exc)`` is one line."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))

@@ -9,6 +9,7 @@ files on each open (:mod:`pipeline.query.cache`): a commit costs the next open o
 from __future__ import annotations
 
 import json
+import threading
 from dataclasses import dataclass
 
 import pyarrow as pa
@@ -72,6 +73,18 @@ def latest_onboarding(store: Store) -> Onboarding:
     )
 
 
+def query_profile(onboarding: Onboarding, profile: str | None, model_overrides: dict[str, str] | None = None):
+    """The :class:`~pipeline.profiles.Profile` to query with (``"auto"``/``None``: the store's own)."""
+    from pipeline.profiles import PROFILES, get_profile
+
+    if profile in (None, "", "auto"):
+        profile = onboarding.profile if onboarding.profile in PROFILES else "offline"
+    try:
+        return get_profile(profile, model_overrides)
+    except ValueError as exc:
+        raise QueryError(str(exc)) from None
+
+
 def check_models(onboarding: Onboarding, profile_name: str, keys: dict[str, str], store_root) -> None:
     """Fail with one line when the store's vectors come from other models than the query's."""
     for role in CHECKED_ROLES:
@@ -109,6 +122,8 @@ class StoreTables:
                 f"(`python -m pipeline.onboard LIBRARY --store {store.root}`)"
             )
         self.con.register("query_meshes", self.meshes.select(["mesh_idx", "mesh_id"]))
+        self._db_lock = threading.Lock()  # self.con (candidate_views, view_poses): one statement at a time
+        self._row_of: dict[str, int] | None = None
         if self.store.dataset(self.text_dataset) is None:
             raise QueryError(f"store {store.root} has no caption embeddings: re-run onboarding")
         self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"], slice_layout)
@@ -117,6 +132,42 @@ class StoreTables:
             raise QueryError(
                 f"store {store.root} has no caption embeddings for its active meshes: re-run onboarding"
             )
+
+    def mesh(self, mesh_id: str) -> dict:
+        """The active-mesh record of ``mesh_id`` (name, paths, format, referenced files)."""
+        if self._row_of is None:
+            self._row_of = {m: j for j, m in enumerate(self.meshes.column("mesh_id").to_pylist())}
+        j = self._row_of.get(mesh_id)
+        if j is None:
+            raise QueryError(f"no active mesh {mesh_id!r} in this store")
+        return self.meshes.slice(j, 1).to_pylist()[0]
+
+    def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
+        """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
+        fps = self.onboarding.fingerprints
+        params = {
+            "mesh_ids": list(mesh_ids),
+            "render_fingerprint": fps["render"],
+            "caption_fingerprint": fps["caption"],
+        }
+        with self._db_lock:
+            rel = self.con.sql(load_sql("candidate_views"), params=params)
+            return rel.to_arrow_table().to_pylist()
+
+    def view_poses(self, mesh_ids: list[str]) -> list[dict]:
+        """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``
+        (``sql/view_poses.sql``; the pose-estimator hand-off, :mod:`pipeline.query.handoff`)."""
+        fp = self.onboarding.fingerprints.get("render")
+        params = {"mesh_ids": list(mesh_ids), "render_fingerprint": fp}
+        with self._db_lock:
+            return self.con.sql(load_sql("view_poses"), params=params).to_arrow_table().to_pylist()
+
+    @property
+    def versions(self) -> dict[str, int]:
+        """The table versions this state reads (one consistent snapshot, :mod:`pipeline.snapshot`). Derived
+        data of the query path (the embedding cache; a stage-1 vector index) is built from this pinned
+        store (``store.parts(dataset)``) and keyed on these versions, so a reload moves it with the rest."""
+        return self.store.versions()
 
     # ------------------------------------------------------------------ embeddings (cached)
     def _embeddings(self, kind: str, dataset: str, fp: str, layout=None) -> pa.Table:

@@ -49,6 +49,21 @@ def units_warnings(candidates) -> list[str]:
     ]
 
 
+def acceptance_line(r: QueryResult) -> str:
+    """The open-set verdict in words: whether the best model matches, or no model of the library does."""
+    v = r.verdict
+    if v is None:
+        return "answer: not judged"
+    if v.accepted is None:
+        return f"answer: not judged ({v.note})"
+    if not r.candidates:
+        return "answer: no model in the library matches (the library holds no model to rank)"
+    at = f"confidence {v.confidence:.2f}, accept threshold {v.threshold:.2f}"
+    if v.accepted:
+        return f"answer: accepted, {r.candidates[0].name} matches ({at})"
+    return f"answer: NOT accepted: no model in the library matches this object ({at}); closest candidates:"
+
+
 def format_result(r: QueryResult) -> str:
     """A short header (ROI, stage-1 outcome), the ranked table and the latency breakdown."""
     lines = []
@@ -64,6 +79,7 @@ def format_result(r: QueryResult) -> str:
         for note in roi.get("notes", []):
             lines.append(f"note: {note}")
     lines.append(_stage1_line(r))
+    lines.append(acceptance_line(r))
     verified = any(getattr(c, "inliers", None) is not None for c in r.candidates)
     rows = [("rank", "model", "text", "image", "view", "size (m)", "source")]
     for c in r.candidates:

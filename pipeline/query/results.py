@@ -90,14 +90,33 @@ class QueryResult:
     query: dict = field(default_factory=dict)  # image, prompt, ROI and models (filled by Retriever.query)
     roi: object | None = field(default=None, repr=False)  # the Roi (Retriever.query), not serialised
     view_ranking: ViewRanking | None = field(default=None, repr=False)  # rank(views=True); not serialised
+    verdict: object | None = None  # pipeline.query.accept.Verdict: the open-set decision (set by rank)
 
     @property
     def best(self) -> Candidate | None:
         return self.candidates[0] if self.candidates else None
 
+    @property
+    def accepted(self) -> bool | None:
+        """Whether the best candidate matches the object (``None``: not judged, see ``acceptance.note``)."""
+        return None if self.verdict is None else self.verdict.accepted
+
+    @property
+    def confidence(self) -> float | None:
+        """Calibrated probability that the best candidate is the right model (``None``: not judged)."""
+        return None if self.verdict is None else self.verdict.confidence
+
+    @property
+    def accept_threshold(self) -> float | None:
+        return None if self.verdict is None else self.verdict.threshold
+
     def to_dict(self) -> dict:
         out = {
             "query": self.query,
+            "accepted": self.accepted,
+            "confidence": self.confidence,
+            "accept_threshold": self.accept_threshold,
+            "acceptance": None if self.verdict is None else self.verdict.to_dict(),
             "mode": self.mode,
             "decided_by": self.decided_by,
             "used_fallback": self.used_fallback,

@@ -14,8 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from pipeline.query.modes import MODES as MODES  # re-exported: the settings name the modes
+
 GRAY = (205, 205, 205)
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 
@@ -24,6 +25,7 @@ class QuerySettings:
     """Defaults of one profile's query path."""
 
     threshold: float  # stage-1 tau
+    mode: str = "two-stage"  # the step list ranking runs (pipeline.query.steps.STEP_LISTS)
     fallback_k: int = 10  # stage-1 top-k when nothing passes tau (reference scripts: 15)
     fallback_unit: str = "captions"  # what fallback_k counts: caption rows (paper) or "meshes"
     prompt_weight: float = 0.0  # weight of the prompt's text embedding in the stage-1 query vector
@@ -37,6 +39,8 @@ class QuerySettings:
     verify: bool = False  # local-feature verification of the top candidates (pipeline.query.verify)
     verify_top: int = 20  # candidates verified (by global score)
     verify_weight: float = 0.3  # weight of the inlier term in the fused score
+    accept_threshold: float | None = None  # open-set operating point (None: the calibration's default)
+    accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})

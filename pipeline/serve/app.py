@@ -1,7 +1,8 @@
 """The HTTP API (FastAPI): routes, uploads, errors. See ``docs/serve.md``.
 
 Every answer is JSON; every error is ``{"error": "<one line>"}`` with a 4xx status (503/504 when busy or
-slow); an unexpected failure is logged with its traceback and answered 500 without one.
+slow; 503 also when the store changed under a query and its newest snapshot failed too); an unexpected
+failure is logged with its traceback and answered 500 without one.
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from pipeline.query.errors import QueryError
+from pipeline.query.errors import QueryError, StoreUnavailable
+from pipeline.query.modes import MODES
 from pipeline.serve.guard import GuardMiddleware
 from pipeline.serve.service import Busy, QueryService
 
 log = logging.getLogger("pipeline.serve")
 
-MODES = ("two-stage", "text-only", "image-only")
 ROI_MODES = ("segm", "bbox")
 
 
@@ -73,6 +74,9 @@ class RankOptions(BaseModel):
     roi: str = Field("segm", description="segm: object on gray (paper); bbox: raw box crop")
     threshold: float | None = Field(None, description="stage-1 tau (default: the profile's)")
     fallback_k: int = Field(10, ge=1, le=1000, description="stage-1 top-k when nothing passes tau")
+    accept_threshold: float | None = Field(
+        None, ge=0.0, le=1.0, description="open-set operating point (default: the server's)"
+    )
     roi_mask: bool = Field(
         False, description="add the ROI mask (photo size, PNG base64) as query.roi.mask_png_b64"
     )
@@ -111,6 +115,7 @@ def run_query(retriever, image, prompt, box, mask, opts: RankOptions, name: str 
         threshold=opts.threshold,
         fallback_k=opts.fallback_k,
         top=opts.top,
+        accept_threshold=opts.accept_threshold,
     )
     if name:
         result.query["image"] = name
@@ -155,6 +160,10 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
     async def _busy(_: Request, exc: Busy):
         return error(503, str(exc), {"Retry-After": "1"})
 
+    @app.exception_handler(StoreUnavailable)
+    async def _store_moved(_: Request, exc: StoreUnavailable):
+        return error(503, str(exc), {"Retry-After": "2"})
+
     @app.exception_handler(asyncio.TimeoutError)
     async def _timeout(_: Request, exc: Exception):
         return error(504, f"the query took longer than {limits.timeout:g} s")
@@ -190,10 +199,17 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
         roi: Annotated[str, Form()] = "segm",
         threshold: Annotated[float | None, Form()] = None,
         fallback_k: Annotated[int, Form(ge=1, le=1000)] = 10,
+        accept_threshold: Annotated[float | None, Form(ge=0.0, le=1.0)] = None,
         roi_mask: Annotated[bool, Form(description="add the ROI mask as query.roi.mask_png_b64")] = False,
     ):
         opts = RankOptions(
-            top=top, mode=mode, roi=roi, threshold=threshold, fallback_k=fallback_k, roi_mask=roi_mask
+            top=top,
+            mode=mode,
+            roi=roi,
+            threshold=threshold,
+            fallback_k=fallback_k,
+            accept_threshold=accept_threshold,
+            roi_mask=roi_mask,
         )
         check_options(opts)
         photo = decode_image(await image.read(), "image", limits.max_pixels)

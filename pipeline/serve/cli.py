@@ -50,6 +50,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_torch_threads_arg(models, "half the cores, 1 to 4")
     models.add_argument("--threads", type=positive_int, default=None, help="DuckDB threads per stage-1 query")
     models.add_argument(
+        "--accept-threshold",
+        type=float_range(0.0, 1.0),
+        metavar="P",
+        help="default open-set operating point of the answers (a request's accept_threshold wins; "
+        "default: the calibration's)",
+    )
+    models.add_argument(
+        "--accept-model", metavar="CALIBRATION.json", help="acceptance calibration (default: the shipped one)"
+    )
+    models.add_argument(
         "--no-cache", action="store_true", help="do not use the embedding cache under STORE/_cache"
     )
     lim = p.add_argument_group("limits")
@@ -111,7 +121,8 @@ def build_service(args: argparse.Namespace):
 
     threads = apply_torch_threads(args.torch_threads)
     workers = args.workers or max(1, min(4, cpu_count() // threads))
-    retriever = open_retriever(args)
+    accept = {"accept_threshold": args.accept_threshold, "accept_model": args.accept_model}
+    retriever = open_retriever(args, settings_changes=accept)
     source = "detector" if retriever.profile.detector is not None else "box"
     retriever.load_models(retriever.required_roles(source))
     limits = ServiceLimits(

@@ -4,7 +4,12 @@
   the current snapshot and hold it until they finish. A poller thread compares
   :func:`~pipeline.query.library.store_version` every ``reload_interval`` seconds; on a change it opens a
   new Retriever that shares the loaded models, swaps the reference (one assignment: atomic), and closes
-  the old snapshot once its last in-flight request has finished.
+  the old snapshot once its last in-flight request has finished. A snapshot is one consistent set of table
+  versions (:mod:`pipeline.snapshot`; commits of a run still in progress wait for its ``runs`` commit),
+  leased in the store while open so that ``compact`` does not delete its files (:mod:`pipeline.leases`).
+* Recovery: a request that meets a data file that is gone anyway (a reader without a lease, an expired
+  one) reloads the newest committed snapshot and runs once more on it; when that fails too it answers 503
+  with ``Retry-After`` (:class:`~pipeline.query.errors.StoreUnavailable`).
 * Work: model and DuckDB work runs in a thread pool of ``workers`` threads; at most ``max_pending``
   requests may wait or run at once (more get 503), and a request that waits longer than ``timeout``
   seconds gets 504 (its work still finishes in the pool, bounded by the same limits).
@@ -31,6 +36,9 @@ class Snapshot:
     """A Retriever plus the count of requests using it; closed when retired and idle."""
 
     def __init__(self, retriever) -> None:
+        retriever.recover = False  # the service reloads and retries itself, without blocking other requests
+        if retriever.lease is not None:
+            retriever.lease.relabel("service")
         self.retriever = retriever
         self.version = retriever.version
         self.opened_at = time.time()
@@ -86,8 +94,16 @@ class QueryService:
         self._latencies: deque[float] = deque(maxlen=2000)
         self._stats_lock = threading.Lock()
         self.started_at = time.time()
-        self.counts = {"queries": 0, "errors": 0, "rejected_busy": 0, "timeouts": 0, "reloads": 0}
+        self.counts = {
+            "queries": 0,
+            "errors": 0,
+            "rejected_busy": 0,
+            "timeouts": 0,
+            "reloads": 0,
+            "retries": 0,
+        }
         self.last_reload_error: str | None = None
+        self._unopenable: tuple[dict, str] | None = None  # newest versions that failed to open, why
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
 
@@ -104,27 +120,60 @@ class QueryService:
                 return snap
 
     def reload_if_changed(self) -> bool:
-        """Open the store's latest state if it has new commits; returns whether the snapshot changed."""
+        """Open the store's newest consistent snapshot if it differs from the one served; returns whether
+        the snapshot changed (commits of a run still in progress do not change it)."""
         from pipeline.query.library import store_version
+        from pipeline.snapshot import consistent_versions
 
         with self._swap_lock:
             old = self._snapshot
-            if store_version(old.retriever.store.root) == old.version:
+            token = store_version(old.retriever.store.root)
+            if token == old.version:
                 return False
-            t0 = time.perf_counter()
-            new = Snapshot(old.retriever.reopened())
-            with self._stats_lock:  # counted before it is published: no answer from it precedes the count
-                self.counts["reloads"] += 1
-            self._snapshot = new  # requests from now on use the new state
-            old.retire()  # closes when its in-flight requests are done
-            log.info(
-                "store version %s -> %s: %d meshes (reopened in %.0f ms)",
-                old.version,
-                new.version,
-                new.retriever.n_meshes,
-                (time.perf_counter() - t0) * 1000,
-            )
+            if consistent_versions(old.retriever.store.root) == old.retriever.versions:
+                old.version = token  # nothing this service reads has changed
+                return False
+            self._swap(old)
             return True
+
+    def reload_after_failure(self, failed: Snapshot, reason: str) -> None:
+        """Swap to the newest snapshot after ``failed`` met a vanished file (unless a concurrent request
+        already did); raises StoreUnavailable when the newest snapshot cannot be opened."""
+        from pipeline.query.errors import StoreUnavailable
+        from pipeline.query.recover import damaged, newest_snapshot, one_line
+
+        with self._swap_lock:
+            if self._snapshot is not failed:
+                return
+            newest = newest_snapshot(failed.retriever.store.root)
+            if newest == failed.retriever.versions:
+                raise damaged(failed.retriever.store.root, reason)
+            if self._unopenable is not None and self._unopenable[0] == newest:
+                raise StoreUnavailable(self._unopenable[1])  # tried already: no reopen per request
+            log.warning("store file gone under version %s (%s): reloading", failed.version, reason)
+            try:
+                self._swap(failed)
+            except Exception as exc:  # noqa: BLE001 - keep serving the old snapshot; this request gets 503
+                self.last_reload_error = f"{type(exc).__name__}: {exc}"
+                message = f"the store changed under this query and its newest snapshot cannot be opened: {one_line(exc)}"
+                self._unopenable = (newest, message)
+                raise StoreUnavailable(message) from None
+
+    def _swap(self, old: Snapshot) -> None:
+        """Open the newest snapshot and publish it in place of ``old`` (caller holds ``_swap_lock``)."""
+        t0 = time.perf_counter()
+        new = Snapshot(old.retriever.reopened())
+        with self._stats_lock:  # counted before it is published: no answer from it precedes the count
+            self.counts["reloads"] += 1
+        self._snapshot = new  # requests from now on use the new state
+        old.retire()  # closes when its in-flight requests are done
+        log.info(
+            "store version %s -> %s: %d meshes (reopened in %.0f ms)",
+            old.version,
+            new.version,
+            new.retriever.n_meshes,
+            (time.perf_counter() - t0) * 1000,
+        )
 
     def start_polling(self) -> None:
         if self.limits.reload_interval <= 0 or self._poller is not None:
@@ -157,13 +206,11 @@ class QueryService:
             with self._stats_lock:
                 self.counts["rejected_busy"] += 1
             raise Busy(f"the service is busy ({self.limits.max_pending} requests in flight); retry later")
-        snap = self.acquire()
 
         def work():
             try:
-                return fn(snap.retriever, *args)
+                return self._attempts(fn, args)
             finally:
-                snap.release()
                 self._pending.release()
 
         future = asyncio.get_running_loop().run_in_executor(self.pool, work)
@@ -173,6 +220,35 @@ class QueryService:
             with self._stats_lock:
                 self.counts["timeouts"] += 1
             raise
+
+    def _attempts(self, fn: Callable, args: tuple):
+        """``fn`` on the current snapshot; once more on the newest one when it met a vanished file."""
+        from pipeline.query.errors import StoreUnavailable
+        from pipeline.query.recover import one_line, vanished_file
+
+        snap = self.acquire()
+        try:
+            return fn(snap.retriever, *args)
+        except Exception as exc:
+            if not vanished_file(exc, snap.retriever.store.root):
+                raise
+            reason = one_line(exc)
+        finally:
+            snap.release()
+        with self._stats_lock:
+            self.counts["retries"] += 1
+        self.reload_after_failure(snap, reason)
+        snap = self.acquire()
+        try:
+            return fn(snap.retriever, *args)
+        except Exception as exc:
+            if not vanished_file(exc, snap.retriever.store.root):
+                raise
+            raise StoreUnavailable(
+                f"the store changed under this query and its newest snapshot failed too: {one_line(exc)}"
+            ) from None
+        finally:
+            snap.release()
 
     def record(self, seconds: float, ok: bool, n: int = 1) -> None:
         with self._stats_lock:

@@ -66,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--as-of",
         metavar="VERSION|TIME",
         help="time travel: the store as it was right after version VERSION of its runs table (one "
-        "commit per onboarding run; `python -m pipeline.fsck STORE` lists them) or at an ISO time",
+        "commit per onboarding run; `python -m pipeline.fsck STORE --runs` lists them) or as the last run "
+        "recorded by an ISO time left it (a time before the first run is an error)",
     )
     p.add_argument("--check", action="store_true", help="with --audit: exit 1 when any audit finds rows")
     p.add_argument("--force", action="store_true", help="with --export-duckdb: replace an existing file")
@@ -84,6 +85,19 @@ def _variables(items: list[str]) -> dict[str, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from pipeline.cli_common import reader_gone
+
+    leases: list = []
+    try:
+        return _main(argv, leases)
+    except BrokenPipeError:  # `... | head` closed the pipe: the reader has what it wanted
+        return reader_gone()
+    finally:
+        for lease in leases:
+            lease.release()
+
+
+def _main(argv: list[str] | None, leases: list) -> int:
     args = build_parser().parse_args(argv)
     from pipeline.cli_common import fail
     from pipeline.db import RemoteStore, audit_names, open_store
@@ -133,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         return fail(str(exc))
     try:
+        _hold_lease(store, leases)
         con = connect(store)
     except StoreError as exc:
         return fail(str(exc))
@@ -153,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
             names = audit_names() if "all" in args.audit else args.audit
             found = run_audits(con, names, printer)
             return 1 if args.check and any(found.values()) else 0
+    except BrokenPipeError:
+        raise
     except (duckdb.Error, ValueError, OSError) as exc:
         return fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__, 1)
 
@@ -183,3 +200,13 @@ def _exec_duckdb_cli(store) -> int:
         fh.write(init_script(store))
     os.execv(binary, [binary, "-init", path])
     return 0  # not reached
+
+
+def _hold_lease(store, leases: list) -> None:
+    """Pin a local store to a consistent snapshot leased until the session ends (added to ``leases``):
+    compaction spares what the session reads, however long it lasts (:mod:`pipeline.leases`)."""
+    from pipeline.snapshot import pin_and_lease
+
+    lease = pin_and_lease(store, "sql")
+    if lease is not None:
+        leases.append(lease)

@@ -1,7 +1,9 @@
--- Audit missing_outputs: active meshes that lack some of the rows the current config should have written:
--- views, captions, text embeddings, or the embeddings of any image encoder role. Returns one row per
--- (mesh, stage) with fewer rows than current_config.expected_views, and the open error that explains it,
--- if any (no error: the mesh was never processed, e.g. a run was interrupted).
+-- Audit missing_outputs: active meshes that lack some of the rows the current config (the latest successful
+-- run's) should have written: views, captions, text embeddings, the embeddings of any image encoder role,
+-- or local features. Returns one row per (mesh, stage) with fewer rows than that render config makes for
+-- the stage (current_config.expected_views captioned views; expected_rendered_views with the extra
+-- background view, for render, image embeddings and features), and the open error that explains it, if
+-- any (no error: the mesh was never processed, e.g. a run was interrupted).
 WITH have AS (
     SELECT 'render' AS stage, mesh_id, count(*) AS n FROM views GROUP BY mesh_id
     UNION ALL
@@ -10,6 +12,22 @@ WITH have AS (
     SELECT 'embed_text', mesh_id, count(*) FROM text_embeddings GROUP BY mesh_id
     UNION ALL
     SELECT 'embed_image:' || role, mesh_id, count(*) FROM image_embeddings GROUP BY role, mesh_id
+    UNION ALL
+    SELECT 'features', mesh_id, count(DISTINCT view_index)
+    FROM view_features_all
+    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'features')
+        AND mesh_id IN (SELECT mesh_id FROM meshes)
+    GROUP BY mesh_id
+),
+expected AS (
+    SELECT
+        f.*,
+        CASE
+            WHEN f.stage IN ('caption', 'embed_text') THEN c.expected_views
+            ELSE c.expected_rendered_views
+        END AS n_expected
+    FROM current_fingerprints AS f
+    CROSS JOIN current_config AS c
 )
 SELECT
     CAST(m.mesh_id AS VARCHAR) AS mesh_id,
@@ -19,14 +37,13 @@ SELECT
     CAST(f.table_name AS VARCHAR) AS table_name,
     CAST(f.model_id AS VARCHAR) AS model_id,
     CAST(coalesce(h.n, 0) AS BIGINT) AS n_rows,
-    CAST(c.expected_views AS BIGINT) AS expected_rows,
+    CAST(f.n_expected AS BIGINT) AS expected_rows,
     CAST((
         SELECT any_value(e.reason) FROM errors_open AS e
         WHERE e.mesh_id = m.mesh_id AND e.stage = split_part(f.stage, ':', 1) AND e.fingerprint = f.fingerprint
     ) AS VARCHAR) AS open_error
 FROM mesh_names AS m
-CROSS JOIN current_fingerprints AS f
-CROSS JOIN current_config AS c
+CROSS JOIN expected AS f
 LEFT JOIN have AS h ON h.stage = f.stage AND h.mesh_id = m.mesh_id
-WHERE coalesce(h.n, 0) < c.expected_views
+WHERE coalesce(h.n, 0) < f.n_expected
 ORDER BY mesh_id, stage;

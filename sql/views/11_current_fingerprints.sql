@@ -8,6 +8,7 @@ SELECT
             WHEN j.key = 'render' THEN 'views'
             WHEN j.key = 'caption' THEN 'captions'
             WHEN j.key = 'embed_text' THEN 'text_embeddings'
+            WHEN j.key = 'features' THEN 'view_features'
             ELSE 'image_embeddings'
         END AS VARCHAR
     ) AS table_name,
@@ -22,7 +23,7 @@ SELECT
 FROM current_config AS c, json_each(c.config, '$.fingerprints') AS j;
 
 COMMENT ON VIEW current_fingerprints IS 'fingerprint, table and model of every stage of the current config';
-COMMENT ON COLUMN current_fingerprints.stage IS 'render | caption | embed_text | embed_image:<role>';
+COMMENT ON COLUMN current_fingerprints.stage IS 'render | caption | embed_text | embed_image:<role> | features';
 COMMENT ON COLUMN current_fingerprints.table_name IS 'table the stage writes';
 COMMENT ON COLUMN current_fingerprints.model_id IS 'captioner or encoder id (backend:model); NULL for render';
 COMMENT ON COLUMN current_fingerprints.fingerprint IS 'fingerprint of the stage config and model, chained through its inputs';

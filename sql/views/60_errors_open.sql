@@ -18,6 +18,8 @@ produced AS (
     SELECT 'embed_text', mesh_id, fingerprint FROM text_embeddings_latest
     UNION ALL
     SELECT 'embed_image', mesh_id, fingerprint FROM image_embeddings_latest
+    UNION ALL
+    SELECT 'features', mesh_id, fingerprint FROM view_features_all
 )
 SELECT
     CAST(e.stage AS VARCHAR) AS stage,

@@ -76,7 +76,7 @@ def _(env: Env):
     return env.onboard(library=env.tmp / "nowhere")
 
 
-@case("onboard_library_is_a_file", "onboard", "error", "library folder not found")
+@case("onboard_library_is_a_file", "onboard", "error", "is a file: give the folder that holds the meshes")
 def _(env: Env):
     (env.tmp / "lib.txt").write_text("x")
     return env.onboard(library=env.tmp / "lib.txt")

@@ -18,6 +18,8 @@ import pyarrow.compute as pc
 
 from pipeline import schemas
 from pipeline.onboard.config import RunSpec
+from pipeline.onboard.guard import RemovalGuardError, check_removals
+from pipeline.onboard.interrupt import RunInterrupted, StopFlag
 from pipeline.onboard.plan import Plan, make_plan
 from pipeline.onboard.stages import STAGE_NAMES, Step
 from pipeline.onboard.stages.base import split_errors
@@ -46,15 +48,22 @@ class RunSummary:
     seconds: dict[str, float] = field(default_factory=dict)
     total_seconds: float = 0.0
     status: str = "ok"
+    restored: int = 0  # of ``added``: files whose mesh was onboarded before (not rendered again)
+    removal_guard: dict = field(default_factory=dict)  # the guard's record (pipeline.onboard.guard)
+    guard_line: str = ""
+    warnings: list[str] = field(default_factory=list)
+    lost_nodes: list[str] = field(default_factory=list)  # Ray nodes lost during the run
+    redone: int = 0  # meshes re-submitted after their batch was lost (a lost node, a crashed worker)
 
     def to_dict(self) -> dict:
-        return dict(self.__dict__)
+        return {k: v for k, v in self.__dict__.items() if k != "guard_line"}
 
     def lines(self) -> list[str]:
         rate = self.rendered / self.total_seconds if self.total_seconds > 0 else 0.0
         stages = ", ".join(f"{k} {v:.1f}s" for k, v in self.seconds.items())
-        return [
-            f"run {self.run_id}: {self.n_files} files, {self.added} added, {self.removed} removed, "
+        back = f" ({self.restored} onboarded before, not rendered again)" if self.restored else ""
+        lines = [
+            f"run {self.run_id}: {self.n_files} files, {self.added} added{back}, {self.removed} removed, "
             f"{self.skipped} unchanged, {self.failed} failed"
             + (
                 f" ({self.failed_before} failed before, skipped; --retry-failed retries them)"
@@ -63,7 +72,20 @@ class RunSummary:
             ),
             f"rendered {self.rendered} meshes, captioned {self.captioned}; {self.total_seconds:.1f}s total "
             f"({rate:.2f} meshes/s); {stages}",
-        ]
+        ] + self.cluster_lines()
+        return lines + ([self.guard_line] if self.guard_line else [])
+
+    def cluster_lines(self) -> list[str]:
+        """What the cluster lost and what was redone (nothing when nothing was lost)."""
+        if not (self.lost_nodes or self.redone):
+            return []
+        nodes = ", ".join(self.lost_nodes)
+        lost = f"lost Ray node(s) {nodes}" if nodes else "lost Ray worker(s), no node"
+        return [f"{lost}: {self.redone} meshes redone on the surviving workers (not counted as failed)"]
+
+    def cluster(self) -> dict:
+        """The ``cluster`` entry of the run's ``runs`` row."""
+        return {"lost_nodes": list(self.lost_nodes), "meshes_redone": self.redone}
 
 
 class Timer:
@@ -93,6 +115,10 @@ def progress_bars(progress: bool, run: RunSpec, plan: Plan) -> dict:
 class Engine:
     """Plans a run and commits its batches; subclasses compute the steps' outputs (:meth:`run`)."""
 
+    #: whether :meth:`commit_batch` leaves a batch's remaining steps to the next run on a stop request
+    #: (True where the steps are computed there, as in the local engine)
+    STOP_BETWEEN_STEPS = True
+
     def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
         self.store, self.run_spec, self.cfg, self.run_id, self.progress = (
             store,
@@ -102,6 +128,11 @@ class Engine:
             progress,
         )
         self.seconds: dict[str, float] = {}
+        self.summary: RunSummary | None = None  # set by :meth:`begin`: the counts so far, if the run stops
+        self.stop = StopFlag()  # set on SIGINT/SIGTERM (pipeline.onboard.interrupt); read between steps
+        self.kept_complete: set[str] = set()  # meshes committed with every step this run had for them
+        self.kept_partial: set[str] = set()  # meshes committed with some steps left (a stop request)
+        self.planned: set[str] = set()  # meshes this run has work for
         self.done: dict[str, int] = {}  # stage name -> meshes it processed
 
     def run(self, library: str) -> RunSummary:
@@ -111,18 +142,44 @@ class Engine:
     # ------------------------------------------------------------------ start and end of a run
     def begin(self, library: str) -> tuple[Plan, RunSummary]:
         """Plan the run, commit what discovery found, and start the summary."""
-        summary = RunSummary(self.run_id)
+        summary = self.summary = RunSummary(self.run_id)
         with Timer(self.seconds, "discover"):
             plan = make_plan(self.store, library, self.run_spec)
         summary.n_files = len(plan.files) + len(plan.discover_errors)
         summary.hashed = plan.n_hashed
+        guard = check_removals(
+            plan.n_active_before,
+            plan.n_vanished,
+            summary.n_files,
+            self.cfg.max_removed,
+            self.cfg.allow_removal,
+        )
+        summary.removal_guard, summary.guard_line = guard.describe(), guard.line()
+        if guard.tripped:  # nothing is committed: the run's record counts no change
+            raise RemovalGuardError(guard, plan.library_root, summary)
         summary.skipped = plan.skipped
         summary.failed_before = plan.failed_before
         summary.removed = len(plan.removed_rows)
         summary.added = sum(len(v) for v in plan.new_paths.values())
+        summary.restored = plan.restored
         summary.failed += len(plan.discover_errors)
+        if summary.n_files == 0:
+            summary.warnings.append(
+                f"library {plan.library_root} holds no mesh file (.obj/.ply/.glb/.gltf/.stl/.off): nothing to do"
+            )
         self._commit_discovery(plan)
+        self.planned = set().union(*plan.todo.values())
         return plan, summary
+
+    def left(self) -> int:
+        """Meshes this run had work for that it has not committed with all their steps."""
+        return len(self.planned - (self.kept_complete - self.kept_partial))
+
+    def interrupted(self, signum: int) -> RunInterrupted:
+        """The error of a run stopped by ``signum``, with how many meshes it kept and left."""
+        complete = self.kept_complete - self.kept_partial
+        kept = complete | self.kept_partial
+        return RunInterrupted(signum, len(kept), len(complete), self.left(), self.summary)
 
     def finish(self, summary: RunSummary, t0: float) -> RunSummary:
         summary.captioned = self.done.get("caption", 0)
@@ -235,10 +292,14 @@ class Engine:
         ids = list(dict.fromkeys(rows.column("mesh_id").to_pylist()))
 
         counted: dict[str, set[str]] = {}
+        stopped = False
         for step in self.run_spec.downstream:
             step_ids = [m for m in ids if m in plan.todo[step.key] and m not in failed]
             if not step_ids:
                 continue
+            if self.stop.requested and self.STOP_BETWEEN_STEPS:  # keep what is finished; the rest waits
+                stopped = True
+                break
             out = outputs(step, step_ids, lambda s=step, i=step_ids: self._input(s, batch, i))
             rows, errs = split_errors(out, step.stage.target(out), step.stage.name, self.run_id, paths)
             errors.append(errs)
@@ -257,6 +318,7 @@ class Engine:
             tables["errors"] = pa.concat_tables(errs)
         with Timer(self.seconds, "commit"):
             self.store.commit(tables, self.run_id)
+        (self.kept_partial if stopped else self.kept_complete).update(ids)
         return len(failed)
 
     def _input(self, step: Step, batch: dict[str, pa.Table], mesh_ids: list[str]) -> pa.Table:

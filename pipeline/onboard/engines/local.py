@@ -4,54 +4,73 @@ batch, committing each batch's rows of every table (:meth:`Engine.commit_batch`)
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pyarrow as pa
 
 from pipeline.onboard.config import RunSpec
 from pipeline.onboard.engines.base import Engine, RunSummary, Timer, progress_bars
+from pipeline.onboard.interrupt import StopFlag
 from pipeline.onboard.plan import Plan
 from pipeline.onboard.stages import Step
 from pipeline.onboard.stages.render import RENDER_OUT
 from pipeline.store import Store
 
 
-def _prefetch(source: Iterator, maxsize: int) -> Iterator:
-    """Drain ``source`` in a thread so render workers keep busy while this thread captions and embeds."""
+def _prefetch(source: Iterator, maxsize: int, stop: StopFlag, halt: Callable[[], None]) -> Iterator:
+    """Drain ``source`` in a thread so render workers keep busy while this thread captions and embeds.
+
+    Once ``stop`` is requested, the results already drained are still yielded, then ``halt()`` stops the
+    source (it kills the render workers) and the iteration ends."""
     import queue
     import threading
 
     q: queue.Queue = queue.Queue(maxsize=max(1, maxsize))
-    stop = threading.Event()
-    done = object()
+    ended = threading.Event()
 
     def pump() -> None:
         try:
             for item in source:
-                while not stop.is_set():
+                while not ended.is_set():
                     try:
                         q.put(("item", item), timeout=0.2)
                         break
                     except queue.Full:
                         continue
-                if stop.is_set():
+                if ended.is_set():
                     return
-            q.put(("end", done))
+            if not ended.is_set():
+                q.put(("end", None))
         except BaseException as exc:  # re-raised in the consumer
-            q.put(("error", exc))
+            if not ended.is_set():
+                q.put(("error", exc))
 
     t = threading.Thread(target=pump, name="render-prefetch", daemon=True)
     t.start()
     try:
         while True:
-            kind, value = q.get()
+            if stop.requested:
+                ended.set()
+                while True:  # what is rendered already is kept
+                    try:
+                        kind, value = q.get_nowait()
+                    except queue.Empty:
+                        return
+                    if kind == "item":
+                        yield value
+            try:
+                kind, value = q.get(timeout=0.2)
+            except queue.Empty:
+                continue
             if kind == "end":
                 return
             if kind == "error":
                 raise value
             yield value
     finally:
-        stop.set()
+        ended.set()
+        if t.is_alive():
+            halt()
         t.join(timeout=5)
 
 
@@ -68,20 +87,24 @@ class LocalEngine(Engine):
     def run(self, library: str) -> RunSummary:
         t0 = time.perf_counter()
         plan, summary = self.begin(library)
+        self.stop.check()
         self._load_models(plan)
+        self.stop.check()
         bars = progress_bars(self.progress, self.run_spec, plan)
+        batches = self._rendered_batches(plan, bars[self.run_spec.source.stage.name], summary)
         try:
-            for source_out, meshes_rows in self._rendered_batches(
-                plan, bars[self.run_spec.source.stage.name], summary
-            ):
+            # after a stop request, the batches still bring what is rendered; commit_batch keeps it
+            for source_out, meshes_rows in batches:
                 summary.failed += self.commit_batch(plan, source_out, meshes_rows, bars, self._outputs)
             ids = plan.downstream_ids()
             for i in range(0, len(ids), self.cfg.batch_size):
+                self.stop.check()
                 chunk = ids[i : i + self.cfg.batch_size]
                 with Timer(self.seconds, "load_views"):
                     views = self.stored_rows(self.run_spec.source, chunk)
                 summary.failed += self.commit_batch(plan, views, [], bars, self._outputs)
         finally:
+            batches.close()  # stops the render workers now, whatever ended the run
             for b in bars.values():
                 b.close()
         return self.finish(summary, t0)
@@ -104,6 +127,8 @@ class LocalEngine(Engine):
         if self.cfg.workers <= 0:
             stage = source.stage.runner(self.cfg, self.run_id, source)
             for it in items:
+                if self.stop.requested:
+                    return
                 yield it, stage.render_one(it)
             return
         from pipeline.onboard.engines.render_pool import RenderPool
@@ -113,7 +138,7 @@ class LocalEngine(Engine):
             self.cfg, self.run_id, min(self.cfg.workers, len(items)), self.cfg.render_timeout_s, source
         )
         try:
-            yield from _prefetch(pool.map(items), maxsize=2 * self.cfg.batch_size)
+            yield from _prefetch(pool.map(items), 2 * self.cfg.batch_size, self.stop, pool.halt)
         finally:
             pool.close()
             # wall time of the render pool, start-up included ("render": the main thread's wait for it)
@@ -135,6 +160,8 @@ class LocalEngine(Engine):
         n_in_batch = 0
         t = time.perf_counter()
         for item, rows in self._render_stream(items):
+            if self.stop.requested and rows[0].get("error_type") in ("WorkerCrash", "Timeout"):
+                continue  # a worker stopped by the signal is no verdict on its mesh
             bar.update(1)
             pending_rows.extend(rows)
             pending_meshes.extend(self.rendered_mesh_rows(plan, item["mesh_id"], rows))

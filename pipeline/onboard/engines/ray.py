@@ -5,8 +5,9 @@ through one ``map_batches`` stage per step (render actors on CPUs, then captione
 pools, on GPUs where the cluster has them) and commits every ``cfg.batch_size`` finished meshes through
 the code the local engine commits with (:meth:`Engine.commit_batch`). Only the driver writes the store,
 so the parts, keys and fingerprints are those of the local engine: either engine can continue the
-other's work. A crashed actor is restarted and its batch retried (``RayOptions.max_retries``); a batch that
-still fails becomes ``errors`` rows (WorkerCrash) and the run goes on.
+other's work. The work runs in rounds: meshes whose batch was lost with a node, a worker or an actor
+are re-submitted to fresh pools on the surviving nodes; only a mesh that kills a fresh worker twice
+becomes an ``errors`` row (WorkerCrash), and a cluster that cannot finish stops the run with one line.
 """
 
 from __future__ import annotations
@@ -24,6 +25,16 @@ import pyarrow.compute as pc
 from pipeline import schemas
 from pipeline.onboard.config import RunSpec
 from pipeline.onboard.engines.base import Engine, RunSummary, Timer, progress_bars
+from pipeline.onboard.engines.ray_cluster import (
+    ClusterWatch,
+    LibraryUnreachableError,
+    RayEngineError,
+    check_reachable,
+    gcs_address,
+    log_dir,
+    quiet_console,
+    quiet_driver_core,
+)
 from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.engines.ray_workers import (
     input_keys,
@@ -36,9 +47,14 @@ from pipeline.onboard.plan import Plan
 from pipeline.onboard.stages import Step
 from pipeline.store import Store, utcnow
 
+log = logging.getLogger(__name__)
 
-class RayEngineError(RuntimeError):
-    """The Ray engine cannot run (Ray missing, cluster unreachable, every batch failed)."""
+#: lost batches (with no node lost meanwhile) after which a mesh is recorded as failed
+MESH_STRIKES = 2
+#: seconds between checks of the head and the nodes while a round waits for results
+WATCH_PERIOD_S = 1.0
+#: seconds to wait, after Ray is shut down, for an aborted round's reader thread to end
+PUMP_JOIN_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -88,31 +104,58 @@ def plan_layout(
 class RayEngine(Engine):
     """Runs a :class:`Plan` on Ray Data; models live in the actors, never in the driver."""
 
+    STOP_BETWEEN_STEPS = False  # a batch arrives with every step done: a stop request keeps all of it
+
     def __init__(self, store: Store, run: RunSpec, run_id: str, progress: bool = True):
         super().__init__(store, run, run_id, progress)
         self.layout: Layout | None = None
+        self.library_root: str | None = None
+        self._pumps: list = []  # the threads that read each round's results
 
     # ------------------------------------------------------------------ run
     def run(self, library: str) -> RunSummary:
         t0 = time.perf_counter()
         plan, summary = self.begin(library)
+        self.library_root = plan.library_root
         items = self._items(plan)
         if items:
             bars = progress_bars(self.progress, self.run_spec, plan)
             try:
                 with Timer(self.seconds, "ray_start"):
                     started = _start_ray(self.cfg.ray)
-                try:
-                    self._run_dataset(plan, items, bars, summary)
-                finally:
-                    if started:
-                        import ray
-
-                        ray.shutdown()
+                with quiet_console():  # until Ray Data's threads of an aborted round have ended too
+                    try:
+                        self._run_dataset(plan, items, bars, summary)
+                    finally:
+                        self._stop(started)
             finally:
                 for b in bars.values():
                     b.close()
         return self.finish(summary, t0)
+
+    def _stop(self, started: bool) -> None:
+        """Disconnect from Ray (if this run connected), then let the threads of an aborted round end:
+        this round's reader and Ray Data's executor, which would otherwise reconnect to Ray on their own
+        (Ray's auto-connect) and print their errors after the run."""
+        import threading
+
+        import ray
+        import ray._private.auto_init_hook as auto_init
+
+        live = [t for t in self._pumps if t.is_alive()]
+        if live:
+            live += [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")]
+        saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
+        try:
+            if started:
+                try:
+                    ray.shutdown()
+                except (Exception, SystemExit):  # noqa: BLE001 - a lost head: the run's own error is the one to report
+                    log.debug("ray.shutdown failed", exc_info=True)
+            for t in live:
+                t.join(timeout=PUMP_JOIN_S)
+        finally:
+            auto_init.enable_auto_connect = saved
 
     # ------------------------------------------------------------------ inputs
     def _items(self, plan: Plan) -> list[dict]:
@@ -164,57 +207,180 @@ class RayEngine(Engine):
 
         ctx = ray.data.DataContext.get_current()
         saved = (ctx.max_errored_blocks, ctx.enable_progress_bars, ctx.print_on_execution_start)
-        ctx.max_errored_blocks = -1  # a batch that still fails after retries becomes errors rows
+        ctx.max_errored_blocks = -1  # a lost batch is dropped from the round and re-submitted by the driver
         ctx.enable_progress_bars = False
         ctx.print_on_execution_start = False
         ctx.execution_options.preserve_order = False
-        logging.getLogger("ray.data").setLevel(logging.WARNING)
         try:
             self._stream(plan, items, bars, summary)
         finally:
             ctx.max_errored_blocks, ctx.enable_progress_bars, ctx.print_on_execution_start = saved
 
     def _stream(self, plan: Plan, items: list[dict], bars, summary: RunSummary) -> None:
+        """Run the items in rounds: each round streams its meshes through the actor pools and commits
+        what comes back; meshes whose batch was lost go to the next round. A batch lost while a node
+        died is an infrastructure failure and is simply redone; a batch lost on its own counts against
+        its meshes, which are then retried one per batch, so that a mesh is recorded as failed only
+        when it kills a fresh worker a second time."""
+        watch = ClusterWatch(gcs_address() if self.cfg.ray.address else None)
+        check_reachable(self._reach(plan, items))
+        strikes: dict[str, int] = {}
+        infra: dict[str, int] = {}
+        pending, isolate, received_any = items, False, False
+        while pending:
+            received = self._round(plan, pending, bars, summary, watch, isolate)
+            received_any |= bool(received)
+            if self.stop.requested:  # interrupted: no new round; the re-run does the rest
+                break
+            lost = [r for r in pending if r["mesh_id"] not in received]
+            if not lost:
+                break
+            dead = watch.check()
+            for r in lost:
+                counter = infra if dead else strikes
+                counter[r["mesh_id"]] = counter.get(r["mesh_id"], 0) + 1
+            bad = [r for r in lost if strikes.get(r["mesh_id"], 0) >= MESH_STRIKES]
+            if bad and not received_any and not watch.lost:
+                raise RayEngineError(
+                    f"every batch failed on the Ray cluster ({len(bad)} meshes); see the Ray logs in "
+                    f"{log_dir()} (`ray logs`)"
+                )
+            if bad:
+                summary.failed += self._commit_lost(plan, bad)
+            pending = [r for r in lost if strikes.get(r["mesh_id"], 0) < MESH_STRIKES]
+            summary.redone += len(pending)
+            summary.lost_nodes = watch.describe_lost()
+            self._check_can_go_on(watch, pending, infra)
+            isolate = isolate or any(strikes.get(r["mesh_id"]) for r in pending)
+        watch.check()  # a node lost while it held no unfinished work is still named
+        summary.lost_nodes = watch.describe_lost()
+
+    def _check_can_go_on(self, watch: ClusterWatch, pending: list[dict], infra: dict[str, int]) -> None:
+        """Stop the run (what finished is committed) when the cluster cannot do the rest."""
+        if not pending:
+            return
+        lost = ", ".join(watch.describe_lost()) or "none"
+        if watch.cpus_left() <= 0:
+            raise RayEngineError(
+                f"the Ray cluster cannot finish: no node with CPUs is left (lost: {lost}); "
+                f"{len(pending)} meshes are not done, the finished ones are committed; run the same "
+                "command again when the cluster is back"
+            )
+        if max(infra.get(r["mesh_id"], 0) for r in pending) > self.cfg.ray.max_retries:
+            raise RayEngineError(
+                f"the Ray cluster kept losing nodes ({lost}): {len(pending)} meshes were lost "
+                f"{self.cfg.ray.max_retries + 1} times and are not done; the finished ones are "
+                "committed; run the same command again"
+            )
+
+    def _reach(self, plan: Plan, items: list[dict]) -> dict[str, str]:
+        """The folders every node must read: the library (to render) and the store (stored inputs)."""
+        source = self.run_spec.source.key
+        paths = {}
+        if any(source in r["todo"] for r in items):
+            paths["library"] = plan.library_root
+        if any(r.get(part_column(k)) for r in items for k in input_keys(self.run_spec)):
+            paths["store"] = str(self.store.root)
+        return paths
+
+    def _round(
+        self, plan: Plan, items: list[dict], bars, summary: RunSummary, watch: ClusterWatch, isolate: bool
+    ) -> set[str]:
+        """One pass of ``items`` through the pools; the mesh ids that came back (and were committed).
+        Raises :class:`RayEngineError` when the head is lost or no node is left to run on."""
+        import queue
+        import threading
+
         import ray
 
-        ds = self._dataset(items, ray.cluster_resources())
-        sent = {r["mesh_id"]: r for r in items}
+        ds = self._dataset(items, ray.cluster_resources(), isolate)
+        out: queue.Queue = queue.Queue()  # at most a couple of batches wait here (the pump holds back)
+        stop = threading.Event()
+
+        def pump() -> None:
+            try:
+                for batch in ds.iter_batches(batch_size=self.cfg.batch_size, batch_format="pyarrow"):
+                    while out.qsize() >= 2 and not stop.is_set():
+                        time.sleep(0.05)
+                    if stop.is_set():
+                        return
+                    out.put(("batch", batch))
+                out.put(("end", None))
+            except BaseException as exc:  # noqa: BLE001 - re-raised in the driver's thread
+                if not stop.is_set():
+                    out.put(("error", exc))
+
+        thread = threading.Thread(target=pump, name="ray-round", daemon=True)
+        thread.start()
+        self._pumps.append(thread)
         received: set[str] = set()
         try:
-            for batch in ds.iter_batches(batch_size=self.cfg.batch_size, batch_format="pyarrow"):
-                rows = batch.to_pylist()
-                received |= {r["mesh_id"] for r in rows}
+            while True:
+                try:
+                    kind, value = out.get(timeout=WATCH_PERIOD_S)
+                except queue.Empty:
+                    self._watch(watch, items, received)
+                    continue
+                if kind == "end":
+                    return received
+                if kind == "error":
+                    self._watch(watch, items, received)  # a lost head or cluster, said in one line
+                    if isinstance(value, SystemExit):  # Ray's way out when it loses the cluster
+                        raise RayEngineError(
+                            f"lost the connection to the Ray cluster (Ray logs: {log_dir()})"
+                        ) from None
+                    raise value
+                rows = value.to_pylist()
                 self._commit_rows(plan, rows, bars, summary)
+                received |= {r["mesh_id"] for r in rows}
+                if self.stop.requested:  # SIGINT/SIGTERM: what arrived is committed, the rest waits
+                    return received
         except ray.exceptions.RayError as exc:
             setup = _setup_error(exc)
             if setup is exc:
-                raise
-            raise setup from exc
-        lost = [sent[m] for m in sent if m not in received]
-        if lost:
-            if not received:
                 raise RayEngineError(
-                    f"every batch failed on the Ray cluster ({len(lost)} meshes); see the Ray logs "
-                    "(`ray logs` or /tmp/ray/session_latest/logs)"
-                )
-            summary.failed += self._commit_lost(plan, lost)
+                    f"the Ray run failed: {type(exc).__name__}: {str(exc).splitlines()[0][:300]} "
+                    f"(full traceback in the Ray logs, {log_dir()})"
+                ) from exc
+            raise setup from exc
+        finally:
+            stop.set()
 
-    def _dataset(self, items: list[dict], resources: dict):
-        """The Ray Data pipeline: render/load actors, then captioner and encoder actor pools."""
+    def _watch(self, watch: ClusterWatch, items: list[dict], received: set[str]) -> None:
+        """While a round waits: stop when the head is gone or no node with CPUs is left."""
+        left = len(items) - len(received)
+        if not watch.head_reachable():
+            raise RayEngineError(
+                f"lost the Ray head node (GCS at {watch.gcs_address} unreachable): {left} meshes of this "
+                "round are not done, the finished ones are committed; run the same command again when the "
+                f"cluster is back (Ray logs: {log_dir()})"
+            )
+        if watch.cpus_left() <= 0:
+            watch.check()
+            raise RayEngineError(
+                f"the Ray cluster cannot finish: no node with CPUs is left (lost: "
+                f"{', '.join(watch.describe_lost()) or 'none'}); {left} meshes are not done, the finished "
+                "ones are committed; run the same command again when the cluster is back"
+            )
+
+    def _dataset(self, items: list[dict], resources: dict, isolate: bool = False):
+        """The Ray Data pipeline: render/load actors, then captioner and encoder actor pools (one mesh
+        per batch everywhere when ``isolate``: a retry after a batch was lost on its own)."""
         with warnings.catch_warnings():
             # max_restarts / max_task_retries still travel as ray_remote_args (deprecated, no named form)
             warnings.filterwarnings("ignore", message=".*ray_remote_args.*is deprecated")
-            return self._build_dataset(items, resources)
+            return self._build_dataset(items, resources, isolate)
 
-    def _build_dataset(self, items: list[dict], resources: dict):
+    def _build_dataset(self, items: list[dict], resources: dict, isolate: bool):
         import ray
 
         from pipeline.onboard.engines.ray_workers import RenderWorker, StepWorker
 
         opts = self.cfg.ray
-        # a crashed actor is always replaced; the batch it held is retried max_retries times, then dropped
-        # (and recorded as errors rows by the driver) so one poisonous batch cannot stall the pool
-        retry = {"max_restarts": -1, "max_task_retries": opts.max_retries}
+        # a crashed actor is replaced (on a surviving node if its node died); the batch it held is not
+        # retried on it (a restarting actor on a dead node only fails it again): it is dropped from the
+        # round, and the driver re-submits its meshes in the next round (_stream)
+        retry = {"max_restarts": -1, "max_task_retries": 0}
         steps = [s for s in self.run_spec.downstream if any(s.key in r["todo"] for r in items)]
         n_caption = sum(opts.caption_actors for s in steps if _captioner_pool(s))
         n_embed = sum(opts.embed_actors for s in steps if not _captioner_pool(s))
@@ -226,12 +392,12 @@ class RayEngine(Engine):
         self.layout = layout
 
         table = pa.Table.from_pylist(items, schema=row_schema(self.run_spec))
-        step = max(1, opts.render_batch_size)
+        step = 1 if isolate else max(1, opts.render_batch_size)
         ds = ray.data.from_arrow([table.slice(i, step) for i in range(0, table.num_rows, step)])
         common = {"batch_format": "pyarrow", "zero_copy_batch": True, **retry}
         ds = ds.map_batches(
             RenderWorker,
-            fn_constructor_args=(self.run_spec, self.run_id, n_render > 0),
+            fn_constructor_args=(self.run_spec, self.run_id, n_render > 0, self.library_root),
             batch_size=step,
             compute=_pool(layout.render_workers),
             num_cpus=layout.render_cpus,
@@ -242,7 +408,7 @@ class RayEngine(Engine):
             ds = ds.map_batches(
                 StepWorker,
                 fn_constructor_args=(self.run_spec, self.run_id, s.key, s is steps[-1]),
-                batch_size=opts.caption_batch_size if big else opts.embed_batch_size,
+                batch_size=1 if isolate else (opts.caption_batch_size if big else opts.embed_batch_size),
                 compute=_pool(opts.caption_actors if big else opts.embed_actors),
                 num_cpus=layout.model_cpus,
                 num_gpus=(layout.caption_gpus if big else layout.embed_gpus) or None,
@@ -278,8 +444,8 @@ class RayEngine(Engine):
         now = utcnow()
         paths = {f.mesh_id: f.source_path for f in plan.files}
         reason = (
-            f"lost on the Ray cluster: its batch failed {self.cfg.ray.max_retries + 1} times "
-            "(worker crash or out of memory; see the Ray logs)"
+            f"killed its Ray worker {MESH_STRIKES} times, the last time alone in its batch, with no node "
+            f"lost meanwhile (crash or out of memory; see the Ray logs, {log_dir()})"
         )
         errors, meshes_rows = [], []
         for r in lost:
@@ -344,7 +510,7 @@ def _setup_error(exc: Exception) -> Exception:
     from pipeline.models.registry import ModelLoadError
     from pipeline.onboard.engines.render_pool import RenderSetupError
 
-    for cls in (ModelLoadError, RenderSetupError):
+    for cls in (ModelLoadError, RenderSetupError, LibraryUnreachableError):
         found = re.search(rf"{cls.__name__}: (.+)", str(exc))
         if found:
             return cls(found.group(1).strip())
@@ -361,17 +527,20 @@ def _start_ray(opts: RayOptions) -> bool:
         ) from None
     if ray.is_initialized():
         return False
-    kwargs: dict = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
+    # ERROR: not the notices of a routine start (token authentication on a private instance, ...)
+    kwargs: dict = {"include_dashboard": False, "logging_level": logging.ERROR, "log_to_driver": False}
+    kwargs["address"] = "local"  # a private instance, even where `ray start` left a cluster running
     if opts.address:
         import pipeline
 
         # ship this checkout's package to the cluster so workers run the driver's code
         kwargs["runtime_env"] = {"py_modules": [str(Path(pipeline.__file__).parent)]}
         kwargs["address"] = opts.address
-    elif opts.num_cpus:
+    if opts.num_cpus and not opts.address:
         kwargs["num_cpus"] = opts.num_cpus
     try:
-        ray.init(**kwargs)
+        with quiet_driver_core():
+            ray.init(**kwargs)
     except Exception as exc:  # unreachable cluster, bad address
         where = opts.address or "a local instance"
         raise RayEngineError(f"cannot start Ray on {where}: {type(exc).__name__}: {exc}") from exc

@@ -36,10 +36,15 @@ class RayOptions:
     gpus_per_actor: float | None = None
     #: CPUs reserved per model actor (None: 1 with GPUs, 0.25 without, so render keeps the cores).
     model_actor_cpus: float | None = None
-    #: Retries of a batch whose actor crashed (the actor itself is always restarted); a batch that
-    #: still fails is recorded as ``errors`` rows (error_type WorkerCrash) and the run goes on.
+    #: Times a mesh lost with a node (an infrastructure failure, never counted against the mesh) is
+    #: re-submitted before the run stops with an error; a mesh that kills a fresh worker twice with no
+    #: node lost is an ``errors`` row (WorkerCrash) instead.
     max_retries: int = 3
     #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" kills the STAGE actor (render, caption,
     #: embed_text, embed_image) once, on the batch holding that mesh, if MARKER_FILE does not exist yet
     #: (it is created first); "STAGE:MESH_ID_PREFIX:" kills it on every attempt.
     inject_fault: str = ""
+    #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" makes the STAGE actor, on the first batch
+    #: holding that mesh, write its Ray node id to MARKER_FILE and wait there (for the test to kill
+    #: the node); later attempts run normally.
+    pause_at: str = ""

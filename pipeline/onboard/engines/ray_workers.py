@@ -118,6 +118,31 @@ class _Fault:
         os._exit(17)
 
 
+class _Pause:
+    """Test hook (``RayOptions.pause_at``): on the first batch holding a given mesh at a given stage,
+    write this actor's Ray node id to a file and wait there (up to a minute) for the test to kill the
+    node, so that a node dies at a known point of the run rather than after a guessed sleep."""
+
+    def __init__(self, spec: str, stage: str):
+        parts = spec.split(":", 2) if spec else []
+        self.active = len(parts) == 3 and parts[0] == stage
+        self.prefix, self.marker = (parts[1], Path(parts[2])) if self.active else ("", None)
+
+    def maybe_wait(self, rows: list[dict]) -> None:
+        if not self.active or not any(r["mesh_id"].startswith(self.prefix) for r in rows):
+            return
+        import ray
+
+        try:
+            with open(self.marker, "x") as f:  # the first attempt only
+                f.write(ray.get_runtime_context().get_node_id())
+        except FileExistsError:
+            return
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+
+
 class _Worker:
     """Common batch plumbing: rows in, the same rows with this stage's blob and timing filled, out."""
 
@@ -127,10 +152,12 @@ class _Worker:
         self.schema = row_schema(run)
         self.timing = f"t_{step.stage.name}"
         self._fault = _Fault(run.cfg.ray.inject_fault, step.stage.name)
+        self._pause = _Pause(run.cfg.ray.pause_at, step.stage.name)
 
     def __call__(self, batch: pa.Table) -> pa.Table:
         rows = batch.to_pylist()
         self._fault.maybe_crash(rows)
+        self._pause.maybe_wait(rows)
         t0 = time.perf_counter()
         done = self.process(rows)
         if done:
@@ -152,9 +179,20 @@ class RenderWorker(_Worker):
     """Renders meshes (one GL context in one child process per actor, with the per-mesh timeout of
     ``cfg.render_timeout_s``) and loads the stored inputs of meshes that are not re-rendered."""
 
-    def __init__(self, run: RunSpec, run_id: str, render: bool):
+    def __init__(self, run: RunSpec, run_id: str, render: bool, library_root: str | None = None):
         super().__init__(run, run_id, run.source)
         self._pool = self._stage = None
+        if render and library_root:  # a node that cannot see the library fails here, not mesh by mesh
+            from pipeline.onboard.engines.ray_cluster import (
+                LibraryUnreachableError,
+                this_node,
+                unreachable_message,
+                unreadable,
+            )
+
+            why = unreadable(library_root)
+            if why:
+                raise LibraryUnreachableError(unreachable_message(this_node(), "library", library_root, why))
         if render:  # start the GL context now: a worker without OpenGL fails here, not mesh by mesh
             if self.cfg.workers > 0:
                 from pipeline.onboard.engines.render_pool import RenderPool

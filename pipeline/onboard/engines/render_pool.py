@@ -13,6 +13,7 @@ from collections.abc import Iterable, Iterator
 from multiprocessing.connection import wait
 
 from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.interrupt import ignore_signals, signals_blocked
 from pipeline.onboard.stages import Step
 from pipeline.onboard.stages.base import error_row
 from pipeline.onboard.stages.render import RENDER_OUT
@@ -32,6 +33,7 @@ def _cause(exc: BaseException) -> str:
 
 
 def _worker_main(conn, cfg: OnboardConfig, run_id: str, step: Step) -> None:
+    ignore_signals()  # the parent stops its workers; a Ctrl-C to the process group is its to handle
     try:
         stage = step.stage.runner(cfg, run_id, step)
         stage.warm_up()  # GL context + shaders first: timeouts count a mesh's own time only
@@ -53,7 +55,8 @@ class _Worker:
     def __init__(self, ctx, cfg: OnboardConfig, run_id: str, step: Step):
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(target=_worker_main, args=(child, cfg, run_id, step), daemon=True)
-        self.proc.start()
+        with signals_blocked():  # inherited: the worker never sees SIGINT/SIGTERM, not even while starting
+            self.proc.start()
         child.close()
         self.item: dict | None = None
         self.deadline = 0.0
@@ -74,6 +77,7 @@ class RenderPool:
         self.cfg, self.run_id, self.timeout_s = cfg, run_id, timeout_s
         self.step = step or cfg.resolve().source
         self._ctx = mp.get_context("spawn")
+        self._closing = False
         self._workers = [_Worker(self._ctx, cfg, run_id, self.step) for _ in range(max(1, n))]
 
     def _fail(self, item: dict, reason: str, kind: str) -> list[dict]:
@@ -82,7 +86,7 @@ class RenderPool:
 
     def map(self, items: Iterable[dict]) -> Iterator[tuple[dict, list[dict]]]:
         todo = deque(items)
-        while todo or any(w.item is not None for w in self._workers):
+        while not self._closing and (todo or any(w.item is not None for w in self._workers)):
             for w in self._workers:
                 if w.ready and w.item is None and todo:
                     w.item = todo.popleft()
@@ -95,6 +99,8 @@ class RenderPool:
                 [w.conn for w in busy + starting] + [w.proc.sentinel for w in busy + starting], timeout
             )
             now = time.monotonic()
+            if self._closing:  # halted from another thread: the workers it killed are no results
+                return
             for i, w in enumerate(self._workers):
                 if not w.ready:
                     if w.conn in ready:
@@ -137,9 +143,23 @@ class RenderPool:
 
     def _replace(self, i: int) -> None:
         self._workers[i].kill()
-        self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id, self.step)
+        if not self._closing:
+            self._workers[i] = _Worker(self._ctx, self.cfg, self.run_id, self.step)
+
+    def halt(self) -> None:
+        """Stop now (a run interrupted): kill the workers, meshes in flight included; :meth:`map` ends
+        without reporting them."""
+        self._closing = True
+        for w in self._workers:
+            if w.proc.is_alive():
+                w.proc.kill()
 
     def close(self) -> None:
+        if self._closing:
+            for w in self._workers:
+                w.proc.join(5)
+            return
+        self._closing = True
         for w in self._workers:
             try:
                 w.conn.send(None)

@@ -11,14 +11,13 @@ from pipeline import schemas
 from pipeline.store import utcnow
 
 if TYPE_CHECKING:
-    from pipeline.onboard.config import OnboardConfig
-    from pipeline.onboard.stages.step import Step
+    from pipeline.onboard.stages.step import StageConfig, Step
 
 
 class ModelStage:
     """A stage that holds one model role's adapter (built lazily, once) under one step's fingerprint."""
 
-    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
+    def __init__(self, cfg: StageConfig, run_id: str, step: Step, model=None):
         self.cfg = cfg
         self.run_id = run_id
         self.role = step.role

@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import pyarrow as pa
 
 from pipeline import schemas
 from pipeline.mesh.load import load_mesh
 from pipeline.onboard.stages.base import error_row, with_errors
-from pipeline.onboard.stages.step import Step
-
-if TYPE_CHECKING:
-    from pipeline.onboard.config import OnboardConfig
+from pipeline.onboard.stages.step import StageConfig, Step
 
 GEOMETRY_FIELDS = [
     pa.field("n_vertices", pa.int64()),
@@ -31,7 +26,7 @@ RENDER_IN = pa.schema(
 class RenderStage:
     """Loads, normalises and renders each mesh of a batch; the GL context lives as long as the object."""
 
-    def __init__(self, cfg: OnboardConfig, run_id: str, step: Step, model=None):
+    def __init__(self, cfg: StageConfig, run_id: str, step: Step, model=None):
         self.cfg = cfg
         self.run_id = run_id
         self.fingerprint = step.fingerprint

@@ -7,13 +7,30 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
     import pyarrow as pa
 
+    from pipeline.localfeat.config import FeatureConfig
+    from pipeline.mesh.settings import RenderConfig
     from pipeline.models.registry import ModelSpec
     from pipeline.profiles import Profile
+
+
+class StageConfig(Protocol):
+    """What the stages read of a run's config (:class:`pipeline.onboard.config.OnboardConfig` has it):
+    a protocol, so the stages do not import the config module that imports them."""
+
+    render: RenderConfig
+    features: FeatureConfig
+    max_faces: int
+    max_texture_pixels: int
+    prompt_style: str
+    model_options: dict[str, dict]
+
+    @property
+    def prompt(self) -> str: ...
 
 
 @dataclass(frozen=True)

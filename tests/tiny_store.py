@@ -1,4 +1,4 @@
-"""Hand-made stores for tests and examples: a few rows per table, written through ``Store.commit``.
+"""Hand-made stores for the SQL tests: a few rows per table, written through ``Store.commit``.
 
 ``TinyStore`` keeps rows per run and commits each run in run-id order, so tests can state exactly which
 rows exist, which are superseded and which fingerprints are current::
@@ -143,6 +143,24 @@ class TinyStore:
             }
             self._add(f"{table}/{slug(encoder_id)}", schemas.embedding_schema(dim), row, run_id)
 
+    def features(
+        self, mesh_id: str, indices=(0, 1), fingerprint: str = "f1", run_id: str | None = None
+    ) -> None:
+        """``view_features`` rows (2 keypoints per view)."""
+        for i in indices:
+            row = {
+                "mesh_id": mesh_id,
+                "view_index": i,
+                "detector_id": "opencv:sift-256@384",
+                "n_keypoints": 2,
+                "keypoints": [0.0, 0.0, 1.0, 1.0],
+                "descriptor_dim": 2,
+                "descriptors": b"\x00\x01\x02\x03",
+                "fingerprint": fingerprint,
+                "source_fingerprint": "r1",
+            }
+            self._add("view_features", schemas.VIEW_FEATURES, row, run_id)
+
     def complete(self, mesh_id: str, caption: str = "A red box-shaped object with a matte surface") -> None:
         """An active mesh with every current output (views, captions, both embeddings)."""
         self.mesh(mesh_id)
@@ -178,8 +196,10 @@ class TinyStore:
         fingerprints: dict[str, str] | None = None,
         models: dict | None = None,
         render: dict | None = None,
+        status: str = "ok",
     ) -> None:
-        """The ``runs`` row whose config (fingerprints, models, camera layout) is current if latest."""
+        """The ``runs`` row whose config (fingerprints, models, camera layout) is current if it is the
+        latest with status ``ok``."""
         config = {
             "profile": "offline",
             "models": models or MODELS,
@@ -200,7 +220,7 @@ class TinyStore:
             "n_skipped": 0,
             "n_failed": 0,
             "stage_seconds_json": "{}",
-            "status": "ok",
+            "status": status,
         }
         self._add("runs", schemas.RUNS, row, run_id)
 

@@ -1,0 +1,36 @@
+"""The open-set verdict: is the best candidate the object, or does the library not hold it?
+
+Reads the ranking as the earlier steps left it (the order, before it is cut to ``top``; the ranking key:
+``fused`` when verification ran, else ``image``, and ``text`` in text-only mode; ``inliers``; the stage-1
+``text`` channel; ``used_fallback``) plus the query's image scores over the library's cohort, and sets
+``state.verdict`` (``accepted``, ``confidence``) with :func:`pipeline.query.accept.judge`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
+from pipeline.query.steps.state import RankState
+
+
+def run(state: RankState, *, key: str = "fused") -> RankState:
+    """Judge the ranking; ``key``: the channel the order was decided by (``fused`` falls back to ``image``)."""
+    ctx, order = state.ctx, state.order
+    if order is None:
+        order = np.arange(len(state.mesh_idx))
+    keys = state.scores.get(key, state.scores.get("image"))
+    inliers = state.scores.get("inliers")
+    if inliers is None:
+        inliers = np.full(len(state.mesh_idx), -1, np.int64)
+    verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
+    cohort = None
+    if len(order):
+        cohort = cohort_stats(ctx.reranker.score(state.emb.image_space, cohort_indices(ctx.n_meshes)).scores)
+    feats = ranking_features(
+        order, keys, inliers, state.scores.get("text"), state.used_fallback, state.scores.get("image"), cohort
+    )
+    variant = variant_of(state.request.mode, verified)
+    threshold = state.request.accept_threshold
+    state.verdict = judge(ctx.calibration, feats, variant, threshold, ctx.calibration_mismatch)
+    return state

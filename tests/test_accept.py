@@ -1,0 +1,244 @@
+"""Open-set acceptance: the features, the logistic model, thresholds, calibration files, and the fitting and
+cross-validation of ``pipeline.evaluate.openset`` (plain numbers, no store)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.evaluate.openset import (
+    Example,
+    calibration_error,
+    cross_validate,
+    fit,
+    operating_point,
+    rate,
+    rates_at,
+    rejected_at_target,
+    rejection_curve,
+    select_features,
+    usable_features,
+)
+from pipeline.query.accept import (
+    MARGIN_CAP,
+    AcceptModel,
+    Calibration,
+    CalibrationError,
+    answer_features,
+    cohort_indices,
+    cohort_stats,
+    judge,
+    load_calibration,
+    ranking_features,
+    shipped_path,
+    variant_of,
+)
+
+
+def model(threshold=0.5, **kw) -> AcceptModel:
+    args = {"features": ("score", "margin"), "mean": (0.5, 0.1), "scale": (0.1, 0.05), "coef": (2.0, 1.0)}
+    return AcceptModel(**{**args, **kw}, intercept=-0.5, threshold=threshold)
+
+
+def test_answer_features_margin_inliers_and_fallback():
+    f = answer_features([0.8, 0.7], inliers=12, text_score=0.6, used_fallback=True)
+    assert f["score"] == pytest.approx(0.8) and f["margin"] == pytest.approx(0.1)
+    assert f["inliers"] == pytest.approx(math.log1p(12)) and f["text_score"] == pytest.approx(0.6)
+    assert f["fallback"] == 1.0
+    lone = answer_features([0.8], inliers=None, text_score=None, used_fallback=False)
+    assert lone["margin"] == MARGIN_CAP and lone["inliers"] is None and lone["text_score"] is None
+    assert answer_features([0.9, 0.1], None, None, False)["margin"] == MARGIN_CAP  # clipped
+    assert answer_features([0.5, -math.inf], None, None, False)["margin"] == MARGIN_CAP  # no views
+    assert all(v is None for v in answer_features([], None, None, False).values())
+
+
+def test_text_gap_and_cohort_z():
+    f = answer_features([0.8, 0.7], None, 0.5, False, best_text=0.6, image=0.7, cohort=(0.4, 0.1))
+    assert f["text_gap"] == pytest.approx(0.1) and f["cohort_z"] == pytest.approx(3.0)
+    g = answer_features([0.8], None, None, False, best_text=0.6, image=0.7, cohort=None)
+    assert g["text_gap"] is None and g["cohort_z"] is None
+    assert answer_features([0.8], None, 0.5, False, 0.5, 0.7, (0.4, 0.0))["cohort_z"] is None
+    assert cohort_indices(5).tolist() == [0, 1, 2, 3, 4]
+    big = cohort_indices(100_000, size=1024)
+    assert len(big) == 1024 and big[0] == 0 and big[-1] == 99_999 and (np.diff(big) > 0).all()
+    assert cohort_stats(np.array([0.1, 0.3, -np.inf, 0.5])) == pytest.approx((0.3, np.std([0.1, 0.3, 0.5])))
+    assert cohort_stats(np.array([0.1, -np.inf])) is None
+
+
+def test_ranking_features_read_the_top_two_of_the_order():
+    keys = np.array([0.2, 0.9, 0.75], np.float32)
+    inl = np.array([-1, 7, -1])
+    f = ranking_features(np.array([1, 2, 0]), keys, inl, np.array([0.3, 0.4, 0.1]), False)
+    assert f["score"] == pytest.approx(0.9, abs=1e-6) and f["margin"] == pytest.approx(0.15, abs=1e-6)
+    assert f["inliers"] == pytest.approx(math.log1p(7)) and f["text_score"] == pytest.approx(0.4)
+    assert ranking_features(np.array([0]), keys, np.array([-1, -1, -1]), None, True)["inliers"] is None
+
+
+def test_logistic_confidence_is_the_formula():
+    m = model()
+    feats = {"score": 0.6, "margin": 0.2}
+    z = 2.0 * (0.6 - 0.5) / 0.1 + 1.0 * (0.2 - 0.1) / 0.05 - 0.5
+    assert m.confidence(feats) == pytest.approx(1 / (1 + math.exp(-z)))
+    assert m.confidence({"score": 0.6}) is None  # a missing feature is no guess
+    assert m.predict(np.array([[50.0, 50.0], [-50.0, -50.0]])).tolist() == pytest.approx([1.0, 0.0])
+
+
+def test_judge_applies_the_threshold_and_its_override():
+    cal = Calibration("offline", {}, {"two-stage+verify": model(threshold=0.5)})
+    hi = {"score": 0.7, "margin": 0.2, "inliers": None, "text_score": None, "fallback": 0.0}
+    lo = {**hi, "score": 0.3, "margin": 0.0}
+    v = judge(cal, hi, "two-stage+verify")
+    assert v.accepted is True and 0.5 <= v.confidence <= 1 and v.threshold == 0.5
+    assert judge(cal, lo, "two-stage+verify").accepted is False
+    # the operating point moves with the override; the confidence does not
+    strict = judge(cal, hi, "two-stage+verify", threshold=0.9999)
+    assert strict.accepted is False and strict.confidence == v.confidence and strict.threshold == 0.9999
+    assert judge(cal, lo, "two-stage+verify", threshold=0.0).accepted is True
+    with pytest.raises(ValueError, match="within"):
+        judge(cal, hi, "two-stage+verify", threshold=1.5)
+
+
+def test_judge_without_calibration_or_variant_or_candidates():
+    feats = {"score": 0.7, "margin": 0.2, "inliers": None, "text_score": None, "fallback": 0.0}
+    none = judge(None, feats, "two-stage")
+    assert none.accepted is None and none.confidence is None and "no acceptance calibration" in none.note
+    cal = Calibration("offline", {}, {"two-stage": model()})
+    other = judge(cal, feats, "image-only")
+    assert other.accepted is None and "image-only" in other.note
+    mism = judge(cal, feats, "two-stage", mismatch="calibrated for other models")
+    assert mism.accepted is None and mism.note == "calibrated for other models"
+    empty = judge(cal, answer_features([], None, None, False), "two-stage")
+    assert empty.accepted is False and empty.confidence == 0.0
+
+
+def test_variant_names():
+    assert variant_of("two-stage", True) == "two-stage+verify"
+    assert variant_of("two-stage", False) == "two-stage"
+    assert variant_of("text-only", True) == "text-only"
+
+
+def test_calibration_file_round_trip_and_bad_files(tmp_path):
+    cal = Calibration("offline", {"view_encoder": "offline:x"}, {"two-stage": model(0.3)}, {"command": "c"})
+    path = cal.write(tmp_path / "c.json")
+    back = load_calibration("offline", path)
+    assert back.variants["two-stage"] == cal.variants["two-stage"] and back.fit == {"command": "c"}
+    assert back.mismatch({"view_encoder": "offline:x"}) is None
+    assert "view_encoder" in back.mismatch({"view_encoder": "offline:y"})
+    with pytest.raises(CalibrationError, match="not found"):
+        load_calibration("offline", tmp_path / "nope.json")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(CalibrationError, match="cannot read"):
+        load_calibration("offline", tmp_path / "bad.json")
+    (tmp_path / "other.json").write_text(json.dumps({"format": 99}))
+    with pytest.raises(CalibrationError, match="format"):
+        load_calibration("offline", tmp_path / "other.json")
+    d = cal.to_json()
+    d["variants"]["two-stage"]["coef"] = [1.0]
+    (tmp_path / "short.json").write_text(json.dumps(d))
+    with pytest.raises(CalibrationError, match="length"):
+        load_calibration("offline", tmp_path / "short.json")
+    d["variants"]["two-stage"] = {**model().to_json(), "threshold": 2}
+    (tmp_path / "t.json").write_text(json.dumps(d))
+    with pytest.raises(CalibrationError, match="threshold"):
+        load_calibration("offline", tmp_path / "t.json")
+
+
+def test_the_shipped_offline_calibration_loads_and_fits_the_offline_profile():
+    from pipeline.profiles import get_profile
+
+    path = shipped_path("offline")
+    assert path.is_file(), f"{path} is missing: run `python -m pipeline.evaluate openset ... --install`"
+    cal = load_calibration("offline")
+    assert "two-stage+verify" in cal.variants and "two-stage" in cal.variants
+    prof = get_profile("offline")
+    keys = {r: (s.key() if s else None) for r, s in prof.roles().items()}
+    assert cal.mismatch(keys) is None, "the offline models changed: re-run the openset calibration"
+    for m in cal.variants.values():
+        assert 0.0 < m.threshold < 1.0
+    assert load_calibration("no-such-profile") is None
+
+
+# ---------------------------------------------------------------------------- fitting and CV
+def examples(n_groups=12, per=6, seed=0) -> list[Example]:
+    """Right answers score high with a clear margin, wrong and absent ones low (overlapping a little)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for g in range(n_groups):
+        for i in range(per):
+            kind = ("full", True) if i % 3 else ("absent", False)
+            correct = kind[1] and i != 4
+            s = rng.normal(0.75 if correct else 0.45, 0.08)
+            m = rng.normal(0.08 if correct else 0.02, 0.02)
+            feats = {"score": s, "margin": max(m, 0), "inliers": None, "text_score": None, "fallback": 0.0}
+            out.append(
+                Example(f"q{g}-{i}", f"g{g}", "src" if g % 2 else "other", "mask", kind[0], "two-stage",
+                        feats, correct, None)
+            )  # fmt: skip
+    return out
+
+
+def test_operating_point_accepts_the_target_share():
+    conf = np.linspace(0.01, 1.0, 100)
+    t = operating_point(conf, 0.95)
+    assert (conf >= t).mean() >= 0.95 and (conf >= t + 0.011).mean() < 0.95
+    assert operating_point(np.array([0.7]), 0.95) == 0.7
+    assert operating_point(np.array([]), 0.95) == 0.5
+
+
+def test_fit_separates_and_meets_its_target_on_the_training_answers():
+    exs = examples()
+    feats = usable_features(exs)
+    assert feats == ("score", "margin", "fallback")
+    m = fit(exs, feats, target=0.9)
+    x = np.array([[e.features[f] for f in feats] for e in exs])
+    p = m.predict(x)
+    y = np.array([e.correct for e in exs])
+    assert p[y].mean() > 0.7 > 0.3 > p[~y].mean()
+    assert (p[y] >= m.threshold).mean() >= 0.9
+    with pytest.raises(ValueError, match="both right and wrong"):
+        fit([e for e in exs if e.correct], feats, 0.9)
+
+
+def test_cross_validation_never_sees_the_held_out_group():
+    exs = examples()
+    feats = ("score", "margin")
+    cross_validate(exs, feats, 0.9)
+    before = {e.query_id: e.confidence for e in exs}
+    # flip every label of one group: its own out-of-fold confidences must not move
+    flipped = [Example(**{**e.to_json(), "correct": not e.correct}) if e.group == "g3" else e for e in exs]
+    cross_validate(flipped, feats, 0.9)
+    for e in flipped:
+        if e.group == "g3":
+            assert e.confidence == pytest.approx(before[e.query_id])
+    assert any(e.confidence != pytest.approx(before[e.query_id]) for e in flipped if e.group != "g3")
+
+
+def test_forward_selection_keeps_the_informative_feature_and_drops_noise():
+    rng = np.random.default_rng(1)
+    exs = examples(n_groups=6)
+    for e in exs:
+        e.features["text_score"] = float(rng.normal())  # pure noise
+    chosen = select_features(exs, ("score", "margin", "text_score"), 0.9)
+    assert chosen[0] == "score" and "text_score" not in chosen
+    conf = np.array([1.0 if e.correct else 0.0 for e in exs])
+    assert rejected_at_target(exs, conf, 0.9) == 1.0
+    picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True)
+    assert sum(picked.values()) == len({e.group for e in exs})
+
+
+def test_rates_curve_and_calibration_error():
+    exs = examples()
+    cross_validate(exs, ("score", "margin"), 0.9)
+    r = rates_at(exs)
+    assert r.absent_rejected["n"] == sum(e.library == "absent" for e in exs)
+    assert 0 <= r.absent_rejected["lo"] <= r.absent_rejected["rate"] <= r.absent_rejected["hi"] <= 1
+    curve = rejection_curve(exs)
+    assert curve[0]["threshold"] == 0.0 and curve[0]["correct_accepted"]["rate"] == 1.0
+    rejected = [row["absent_rejected"]["rate"] for row in curve]
+    assert rejected == sorted(rejected)  # a higher threshold never accepts more
+    ce = calibration_error(exs)
+    assert 0 <= ce["brier"] < 0.25 and 0 <= ce["ece"] < 0.3
+    assert rate(exs, lambda e: False, lambda e: True)["rate"] is None

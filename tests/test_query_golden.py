@@ -1,0 +1,90 @@
+"""Rankings, scores and JSON output stay exactly what they were recorded as (tests/golden/*.json).
+
+The records were captured with ``tests/golden_ranking.py`` at the code before the ranking became a list of
+steps (main 2da2bd8): every mode, fallback unit, threshold, fallback k, verification and prompt weight, the
+view-level rankings, the evaluation engine's records and the Python API's full JSON, on
+
+* the sample store (data/sample_library onboarded with the offline profile) with its synthetic query set
+  (2 novel views per mesh, seed 0) and the hand-boxed tabletop photo (data/queries/tabletop.jsonl);
+* the 78-mesh YCB store with the labelled photos (data/queries/ycb_photos.jsonl; the light grid), when the
+  shared data and the store (``OSCAR_YCB78_STORE``, default /work/stores/ycb78, complete when its ``.done``
+  marker exists) are present.
+
+A change of any ranking, score or field changes a digest; the test then prints the differing queries.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+from conftest import REPO, SAMPLE_LIBRARY, SHARED_DATA, need_shared
+
+GOLDEN = Path(__file__).parent / "golden"
+YCB78 = Path(os.environ.get("OSCAR_YCB78_STORE", "/work/stores/ycb78"))
+
+
+def check(store, queries_file: Path, expected_file: Path, light: bool = False) -> None:
+    import golden_ranking as g
+
+    from pipeline.evaluate.datasets import load_queries
+    from pipeline.query import Retriever
+
+    queries = load_queries(queries_file)
+    with Retriever.open(store, profile="auto") as r:
+        got = g.summary(g.capture(r, queries, g.machine_tokens(Path(store), queries_file), light), light)
+    expected = json.loads(expected_file.read_text())
+    assert sorted(got) == sorted(expected)
+    wrong = {q: g.differences(expected[q], got[q]) for q in expected if got[q] != expected[q]}
+    assert not wrong, json.dumps(wrong, indent=1)
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory, offline_models):
+    from onboard_helpers import onboard
+
+    from pipeline.evaluate.library import read_store_meshes
+    from pipeline.evaluate.synth import SynthConfig, generate
+    from pipeline.query.library import latest_onboarding
+    from pipeline.store import Store
+
+    root = tmp_path_factory.mktemp("golden")
+    store = root / "sample"
+    onboard(SAMPLE_LIBRARY, store, models=offline_models)
+    with Store.open(store) as s:
+        render = latest_onboarding(s).render_config()
+    cfg = SynthConfig(per_mesh=2, seed=0, onboarding=render)
+    generate(read_store_meshes(str(store)), root / "synth", cfg)
+    return store, root / "synth" / "queries.jsonl"
+
+
+def test_sample_store_synthetic_queries(sample):
+    store, queries = sample
+    check(store, queries, GOLDEN / "sample_synth.json")
+
+
+def test_sample_store_tabletop_photo(sample):
+    store, _ = sample
+    check(store, REPO / "data" / "queries" / "tabletop.jsonl", GOLDEN / "sample_tabletop.json")
+
+
+def test_ycb78_labelled_photos(monkeypatch):
+    need_shared(SHARED_DATA / "photos")
+    monkeypatch.setenv("OSCAR_SHARED_DATA", str(SHARED_DATA))  # the query file's $OSCAR_SHARED_DATA paths
+    if not (YCB78.parent / f"{YCB78.name}.done").exists():
+        pytest.skip(f"the 78-mesh YCB store is not ready at {YCB78} (set OSCAR_YCB78_STORE)")
+    check(YCB78, REPO / "data" / "queries" / "ycb_photos.jsonl", GOLDEN / "ycb78_photos.json", light=True)
+
+
+def test_a_changed_ranking_is_caught():
+    """The comparison can fail: one changed score in a capture changes its digest and is reported."""
+    import golden_ranking as g
+
+    rec = {"q": {"query": {"candidates": [{"mesh_id": "a", "score": None, "image_score": 0.5}]}}}
+    rec["q"]["segm"] = [{"args": {"mode": "two-stage"}, "result": {"image_score": 1.0}}]
+    changed = json.loads(json.dumps(rec))
+    changed["q"]["segm"][0]["result"]["image_score"] = 1.0000001
+    assert g.summary(rec) != g.summary(changed)
+    assert g.differences(rec, changed) == ["/q/segm[0]/result/image_score: 1.0 != 1.0000001"]
