@@ -169,6 +169,10 @@ def test_page_shows_the_mustard_bottle_first_then_answers_again(server, browser)
     # the hand-off: metric size with the guessed-units warning (OBJ files carry no units)
     size = browser.js("return document.querySelector('#results .candidate .size').textContent")
     assert size.endswith("(units guessed: m)") and " m" in size, size
+    # the open-set state: a banner with the verdict and its confidence (or why it was not judged)
+    verdict = browser.js(VERDICT)
+    assert verdict["cls"] in ("accepted", "rejected", "unjudged"), verdict
+    assert verdict["cls"] == "unjudged" or "confidence" in verdict["text"], verdict
     # the ROI mask is drawn over the photo
     assert browser.wait_for(MASK_SHOWN)
     assert browser.js(ROI_OPTIONS) == ["segm", "bbox"]  # the ROI menu survives the answer (no duplicate id)
@@ -182,10 +186,13 @@ def test_page_shows_the_mustard_bottle_first_then_answers_again(server, browser)
         "return [...document.querySelectorAll('#results .candidate .verify')].map(e => e.textContent)"
     )
     assert any(v.startswith("verified: ") for v in verify), verify
+    verdict = browser.js(VERDICT)
+    assert verdict["cls"] in ("accepted", "rejected", "unjudged") and verdict["text"], verdict
     assert browser.js(ROI_OPTIONS) == ["segm", "bbox"]
     assert browser.wait_for(MASK_SHOWN)
 
 
+VERDICT = "const v = document.getElementById('verdict'); return {cls: v.className, text: v.textContent}"
 ROI_OPTIONS = "return [...document.getElementById('roi').options].map(o => o.value)"
 MASK_SHOWN = (
     "const c = document.getElementById('maskview'); if (c.style.display !== 'block') return false;"
