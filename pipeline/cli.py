@@ -20,6 +20,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("pipeline.serve", "HTTP query service and web page"),
     "migrate": ("pipeline.migrate", "upgrade a store to the current layout"),
     "fsck": ("pipeline.fsck", "check a store for missing or corrupt files"),
+    "handoff": (
+        "pipeline.handoff",
+        "answers -> BOP models (mm) + per-query pose priors for a pose estimator",
+    ),
 }
 
 

@@ -30,6 +30,10 @@ SELECT
     CAST(library_root AS VARCHAR) AS library_root,
     CAST(format AS VARCHAR) AS format,
     deps,                                                                  -- referenced files (export)
+    bounds_min,                                                            -- file units (hand-off)
+    bounds_max,
+    CAST(units_guess AS VARCHAR) AS units_guess,                           -- 'm' | 'mm' (loader's guess)
+    CAST(scale_to_unit AS DOUBLE) AS scale_to_unit,                        -- to the unit sphere (render)
     CAST(n_paths AS INTEGER) AS n_paths                                    -- paths sharing this content
 FROM one_path
 WHERE path_rank = 1

@@ -30,6 +30,8 @@ FALLBACK_KS = (1, 10)
 VERIFY = (None, False, True)
 PROMPT_WEIGHTS = (0.0, 1.0)  # on top of the default (None), at the default tau / k / verification
 FULL = 1_000_000
+#: per-candidate fields of the pose-estimator hand-off (the ``handoff`` step), left out of the records
+HANDOFF_FIELDS = ("units_guess", "units_from", "scale_to_metres", "extent_m", "best_view_pose", "intrinsics")
 
 
 def grid(modes, units) -> list[dict]:
@@ -77,6 +79,9 @@ def result_record(res) -> dict:
     d.pop("timings_ms", None)
     for key in ("accepted", "confidence", "accept_threshold", "acceptance"):  # the open-set verdict: a
         d.pop(key, None)  # calibrated layer on top of the ranking (tests/test_openset.py), not the ranking
+    for c in d.get("candidates", []):  # the pose-estimator hand-off: per-candidate facts about the mesh
+        for key in HANDOFF_FIELDS:  # (tests/test_handoff.py), not the ranking
+            c.pop(key, None)
     d["timing_keys"] = sorted(res.timings)
     vr = res.view_ranking
     if vr is not None:

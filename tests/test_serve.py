@@ -117,10 +117,15 @@ def test_meshes_views_export_health_stats(client, store, tmp_path):
     assert rec["name"] == "purple" and [v["view_index"] for v in rec["views"]] == [0, 1]
     v = client.get(rec["views"][1]["url"])
     assert v.status_code == 200 and v.headers["content-type"] == "image/png" and v.content[:4] == b"\x89PNG"
-    z = client.get(f"/meshes/{mid}/export")
+    assert rec["units_guess"] is None and rec["extent_m"] is None  # no geometry recorded: no size claimed
+    z = client.get(f"/meshes/{mid}/export?units=source")
     assert z.status_code == 200 and z.headers["content-type"] == "application/zip"
     names = sorted(zipfile.ZipFile(io.BytesIO(z.content)).namelist())
-    assert names == ["purple/model.mtl", "purple/model.obj", "purple/tex/t.png"]
+    assert names == ["purple/model.mtl", "purple/model.obj", "purple/model_info.json", "purple/tex/t.png"]
+    metres = client.get(f"/meshes/{mid}/export")  # metres by default: this mesh has no recorded units
+    assert metres.status_code == 409 and "no recorded size or units" in metres.json()["error"]
+    assert client.get(f"/meshes/{mid}/export?units=cm").status_code == 422
+    assert client.get(f"/meshes/{mid}/export?units=source&view=9").status_code == 404
     assert client.get("/meshes/nope").status_code == 404
     assert client.get(f"/meshes/{mid}/views/7.png").status_code == 404
     h = client.get("/health").json()

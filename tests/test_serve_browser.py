@@ -148,7 +148,7 @@ def browser(tmp_path):
         proc.wait(timeout=10)
 
 
-def test_page_shows_the_mustard_bottle_first(server, browser):
+def test_page_shows_the_mustard_bottle_first_then_answers_again(server, browser):
     browser.cmd("POST", "/url", {"url": server + "/"})
     browser.type("#image", str(REPO / "data" / "queries" / "tabletop.jpg"))
     browser.type("#prompt", "the yellow mustard bottle")
@@ -166,3 +166,36 @@ def test_page_shows_the_mustard_bottle_first(server, browser):
     assert browser.wait_for("return document.querySelector('#results .candidate img').naturalWidth") > 0
     caption = browser.wait_for("return document.querySelector('#results .candidate .caption').textContent")
     assert "yellow" in caption.lower()
+    # the hand-off: metric size with the guessed-units warning (OBJ files carry no units)
+    size = browser.js("return document.querySelector('#results .candidate .size').textContent")
+    assert size.endswith("(units guessed: m)") and " m" in size, size
+    # the open-set state: a banner with the verdict and its confidence (or why it was not judged)
+    verdict = browser.js(VERDICT)
+    assert verdict["cls"] in ("accepted", "rejected", "unjudged"), verdict
+    assert verdict["cls"] == "unjudged" or "confidence" in verdict["text"], verdict
+    # the ROI mask is drawn over the photo
+    assert browser.wait_for(MASK_SHOWN)
+    assert browser.js(ROI_OPTIONS) == ["segm", "bbox"]  # the ROI menu survives the answer (no duplicate id)
+
+    # a second query in a row, two-stage this time: verification runs and its inliers are shown
+    browser.js("document.getElementById('mode').value = 'two-stage'")
+    browser.js("document.getElementById('roi').value = 'bbox'")
+    browser.cmd("POST", f"/element/{browser.find('#go')}/click", {})
+    browser.wait_for("return document.getElementById('status').textContent.includes('decided by')")
+    verify = browser.wait_for(
+        "return [...document.querySelectorAll('#results .candidate .verify')].map(e => e.textContent)"
+    )
+    assert any(v.startswith("verified: ") for v in verify), verify
+    verdict = browser.js(VERDICT)
+    assert verdict["cls"] in ("accepted", "rejected", "unjudged") and verdict["text"], verdict
+    assert browser.js(ROI_OPTIONS) == ["segm", "bbox"]
+    assert browser.wait_for(MASK_SHOWN)
+
+
+VERDICT = "const v = document.getElementById('verdict'); return {cls: v.className, text: v.textContent}"
+ROI_OPTIONS = "return [...document.getElementById('roi').options].map(o => o.value)"
+MASK_SHOWN = (
+    "const c = document.getElementById('maskview'); if (c.style.display !== 'block') return false;"
+    "const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+    "let n = 0; for (let i = 3; i < d.length; i += 4) n += d[i] > 0; return n > 1000"
+)

@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate retrieval on a query set: the paper's metrics, tau/top-k/mode/ROI sweeps, "
         "prompt styles, and a report (metrics.json, report.md, report.html, plots, failure gallery). "
         "`python -m pipeline.evaluate synth --help` writes a synthetic query set; "
-        "`python -m pipeline.evaluate openset --help` calibrates open-set acceptance.",
+        "`python -m pipeline.evaluate openset --help` calibrates open-set acceptance; "
+        "`python -m pipeline.evaluate pose_prior --help` measures the best view's pose prior.",
     )
     p.add_argument("--store", required=True, metavar="STORE_DIR", help="onboarded store to query")
     src = p.add_argument_group("queries")
@@ -196,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
         from pipeline.evaluate.openset_cli import main as openset_main
 
         return openset_main(argv[1:])
+    if argv[:1] == ["pose_prior"]:
+        from pipeline.evaluate.pose_prior import main as pose_prior_main
+
+        return pose_prior_main(argv[1:])
     args = build_parser().parse_args(argv)
     if not args.queries and not args.synthetic:
         return fail("give --queries PATH or --synthetic N")

@@ -85,7 +85,7 @@ def load_mesh(
     if not np.isfinite(area) or area <= 1e-12 * max(extent, 1e-12) ** 2 or extent <= 0:
         raise MeshError("zero-area mesh: all faces are degenerate")
 
-    rot = _up_rotation(fmt, up)
+    rot = up_rotation(fmt, up)
     centre = (lo + hi) / 2.0
     radius = float(np.max(np.linalg.norm(verts - centre, axis=1)))
     scale = 1.0 / radius
@@ -218,7 +218,7 @@ def quick_face_count(path: str, fmt: str) -> int | None:
     return None
 
 
-def _up_rotation(fmt: str, up: str) -> np.ndarray:
+def up_rotation(fmt: str, up: str) -> np.ndarray:
     """Rotation that makes the mesh z-up (glTF is y-up by specification)."""
     if up == "auto":
         up = "y" if fmt in ("glb", "gltf") else "z"

@@ -24,6 +24,7 @@ import time
 
 from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
+from pipeline.query.handoff import HandOff
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
 from pipeline.query.library import (
     StoreTables,
@@ -79,10 +80,15 @@ class Retriever:
         self.verifier = LocalVerifier(
             store, tables.onboarding, tables.meshes.column("mesh_id").to_pylist(), cfg
         )
-        parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
-        parts["learned"] = self.learned
-        self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
         self.mesh = tables.mesh
+        render = tables.onboarding.render_config()
+        mesh_ids = tables.meshes.column("mesh_id").to_pylist()
+        # issue 19: the pose-estimator hand-off (units, metric size, best-view pose) of every candidate;
+        # it reads the tables directly, not through the recovering view_poses (a query already holds the gate)
+        self.handoff = HandOff(self.mesh, tables.view_poses, render.up if render else "auto", mesh_ids)
+        parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
+        parts |= {"learned": self.learned, "handoff": self.handoff}
+        self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
         self._init_acceptance()
 
     @classmethod
@@ -302,6 +308,12 @@ class Retriever:
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:
         """Rendered views (PNG bytes) and captions of ``mesh_ids`` (``sql/candidate_views.sql``)."""
         return self.tables.candidate_views(mesh_ids)
+
+    @recovering
+    def view_poses(self, mesh_ids: list[str]) -> list[dict]:
+        """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``
+        (``sql/view_poses.sql``)."""
+        return self.tables.view_poses(mesh_ids)
 
     @property
     def n_meshes(self) -> int:

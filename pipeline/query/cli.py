@@ -123,7 +123,21 @@ def build_parser() -> argparse.ArgumentParser:
         "--explain", metavar="OUT.png", help="write a contact sheet: the ROI and each candidate's best view"
     )
     out.add_argument(
-        "--export", metavar="DIR", help="copy the best model's mesh with its material and texture files"
+        "--export",
+        metavar="DIR",
+        help="write the best model's mesh (materials, textures) and model_info.json for a pose estimator",
+    )
+    out.add_argument(
+        "--export-units",
+        default="m",
+        choices=["m", "mm", "source"],
+        help="units of the exported mesh (default m; source: the file as it is; bop is always mm)",
+    )
+    out.add_argument(
+        "--export-format",
+        default="mesh",
+        choices=["mesh", "bop"],
+        help="mesh: the source file type; bop: models/obj_000001.ply (mm) + models_info.json",
     )
     out.add_argument("--no-progress", action="store_true", help="no progress bar in batch mode")
     return p
@@ -268,15 +282,23 @@ def _side_outputs(retriever, result, args) -> dict:
         extra["explain"] = str(write_explain(result, views, args.explain))
     if args.export:
         from pipeline.query.errors import QueryError
-        from pipeline.query.export import export_mesh
+        from pipeline.query.export import export_model
 
-        if result.best is None:
+        best = result.best
+        if best is None:
             raise QueryError("no model to export: the query matched nothing")
-        folder, files, unchanged = export_mesh(retriever.mesh(result.best.mesh_id), args.export)
-        extra["export"] = str(folder)
-        extra["exported_files"] = [str(f) for f in files]
-        if not unchanged:
-            print(f"warning: {files[0]} changed since onboarding; re-run onboarding", file=sys.stderr)
+        prior = {k: getattr(best, k) for k in ("best_view", "best_view_pose", "intrinsics")}
+        done = export_model(
+            retriever.mesh(best.mesh_id),
+            args.export,
+            units=args.export_units,
+            fmt=args.export_format,
+            prior=prior,
+        )
+        extra["export"] = str(done.folder)
+        extra["exported_files"] = [str(f) for f in done.files]
+        if not done.unchanged:
+            print(f"warning: {done.files[0]} changed since onboarding; re-run onboarding", file=sys.stderr)
     return extra
 
 

@@ -141,7 +141,7 @@ class StoreTables:
                 f"(`python -m pipeline.onboard LIBRARY --store {store.root}`)"
             )
         self.con.register("query_meshes", self.meshes.select(["mesh_idx", "mesh_id"]))
-        self._db_lock = threading.Lock()  # self.con (candidate_views) runs one statement at a time
+        self._db_lock = threading.Lock()  # self.con (candidate_views, view_poses): one statement at a time
         self._row_of: dict[str, int] | None = None
         if self.store.dataset(self.text_dataset) is None:
             raise QueryError(f"store {store.root} has no caption embeddings: re-run onboarding")
@@ -173,6 +173,14 @@ class StoreTables:
         with self._db_lock:
             rel = self.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
+
+    def view_poses(self, mesh_ids: list[str]) -> list[dict]:
+        """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``
+        (``sql/view_poses.sql``; the pose-estimator hand-off, :mod:`pipeline.query.handoff`)."""
+        fp = self.onboarding.fingerprints.get("render")
+        params = {"mesh_ids": list(mesh_ids), "render_fingerprint": fp}
+        with self._db_lock:
+            return self.con.sql(load_sql("view_poses"), params=params).to_arrow_table().to_pylist()
 
     @property
     def versions(self) -> dict[str, int]:

@@ -29,6 +29,28 @@ def _stage1_line(r: QueryResult) -> str:
     return f"stage 1: {kept}; decided by {r.decided_by.replace('stage', 'stage ')}"
 
 
+def size_text(c) -> str:
+    """``0.097 x 0.067 x 0.191`` (metres, x y z), with ``*`` when the units are a guess; ``-`` unknown."""
+    extent = getattr(c, "extent_m", None)
+    if not extent:
+        return "-"
+    guess = "*" if getattr(c, "units_from", None) == "extent" else ""
+    return " x ".join(f"{v:.3g}" for v in extent) + guess
+
+
+def units_warnings(candidates) -> list[str]:
+    """One warning line when a listed model's units are guessed from its size (OBJ/PLY/STL/OFF have none)."""
+    guessed = [c for c in candidates if getattr(c, "units_from", None) == "extent"]
+    if not guessed:
+        return []
+    mm = sum(1 for c in guessed if c.units_guess == "mm")
+    kinds = f"{mm} as millimetres, {len(guessed) - mm} as metres" if mm else "all as metres"
+    return [
+        f"warning: * units are a guess from the file's size (longest side > 20 units = mm; {kinds}); "
+        "check the size before handing the mesh to a pose estimator"
+    ]
+
+
 def acceptance_line(r: QueryResult) -> str:
     """The open-set verdict in words: whether the best model matches, or no model of the library does."""
     v = r.verdict
@@ -62,7 +84,7 @@ def format_result(r: QueryResult) -> str:
     lines.append(acceptance_line(r))
     verified = any(getattr(c, "inliers", None) is not None for c in r.candidates)
     learned = any(getattr(c, "learned_score", None) is not None for c in r.candidates)
-    rows = [("rank", "model", "text", "image", "view", "source")]
+    rows = [("rank", "model", "text", "image", "view", "size (m)", "source")]
     if learned:
         lines.append("image: learned cosine / descriptor cosine (fused score, verification inliers)")
     for c in r.candidates:
@@ -74,15 +96,16 @@ def format_result(r: QueryResult) -> str:
             image = f"{_score(c.learned_score)} / {image} ({_score(c.score)}{inl})"
         elif verified:  # "image (fused, inliers)"
             image += "" if c.inliers is None else f" ({_score(c.score)}, {c.inliers} inl)"
-        rows.append((str(c.rank), c.name, _score(c.text_score), image, view, path))
+        rows.append((str(c.rank), c.name, _score(c.text_score), image, view, size_text(c), path))
     if len(rows) == 1:
         lines.append("no models matched")
     else:
-        widths = [max(len(row[i]) for row in rows) for i in range(5)]
+        widths = [max(len(row[i]) for row in rows) for i in range(6)]
         for row in rows:
             cells = [row[0].rjust(widths[0]), row[1].ljust(widths[1])]
-            cells += [row[i].rjust(widths[i]) for i in (2, 3, 4)]
-            lines.append("  ".join(cells + [row[5]]))
+            cells += [row[i].rjust(widths[i]) for i in (2, 3, 4, 5)]
+            lines.append("  ".join(cells + [row[6]]))
+        lines += units_warnings(r.candidates)
     t = r.timings
     if t:
         parts = [f"{k.removesuffix('_ms').replace('_', ' ')} {v:.0f} ms" for k, v in t.items()]

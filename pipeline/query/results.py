@@ -51,6 +51,15 @@ class Candidate:
     #: text score, verification bonus); None when nothing was fused (image_score applies)
     score: float | None = None
     learned_score: float | None = None  # learned-encoder cosine (max over the model's views)
+    # hand-off to a pose estimator (pipeline.query.handoff; docs/query.md): None when not known
+    units_guess: str | None = None  # units of the source file: "m" | "mm"
+    units_from: str | None = None  # "gltf" (the format says metres) | "extent" (a guess from the size)
+    scale_to_metres: float | None = None  # file coordinates * this = metres
+    extent_m: list[float] | None = None  # axis-aligned size (x, y, z) of the source mesh in metres
+    best_view_pose: list[list[float]] | None = (
+        None  # 4x4: source frame in metres -> best view's camera (OpenCV)
+    )
+    intrinsics: dict | None = None  # {"K": 3x3, "width", "height"} of the best view
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -16,7 +16,7 @@ import time
 from importlib import resources
 from typing import Annotated, Any
 
-from fastapi import FastAPI, File, Form, HTTPException, Request, UploadFile
+from fastapi import FastAPI, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
@@ -77,6 +77,9 @@ class RankOptions(BaseModel):
     accept_threshold: float | None = Field(
         None, ge=0.0, le=1.0, description="open-set operating point (default: the server's)"
     )
+    roi_mask: bool = Field(
+        False, description="add the ROI mask (photo size, PNG base64) as query.roi.mask_png_b64"
+    )
 
 
 class BatchItem(BaseModel):
@@ -116,7 +119,12 @@ def run_query(retriever, image, prompt, box, mask, opts: RankOptions, name: str 
     )
     if name:
         result.query["image"] = name
-    return result.to_dict()
+    out = result.to_dict()
+    if opts.roi_mask and result.roi is not None:
+        from pipeline.serve.answer import mask_png_b64
+
+        out["query"]["roi"]["mask_png_b64"] = mask_png_b64(result.roi.mask)
+    return out
 
 
 # ---------------------------------------------------------------------------- app
@@ -192,6 +200,7 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
         threshold: Annotated[float | None, Form()] = None,
         fallback_k: Annotated[int, Form(ge=1, le=1000)] = 10,
         accept_threshold: Annotated[float | None, Form(ge=0.0, le=1.0)] = None,
+        roi_mask: Annotated[bool, Form(description="add the ROI mask as query.roi.mask_png_b64")] = False,
     ):
         opts = RankOptions(
             top=top,
@@ -200,6 +209,7 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
             threshold=threshold,
             fallback_k=fallback_k,
             accept_threshold=accept_threshold,
+            roi_mask=roi_mask,
         )
         check_options(opts)
         photo = decode_image(await image.read(), "image", limits.max_pixels)
@@ -240,15 +250,20 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
         return {"results": list(await asyncio.gather(*(one(i, q) for i, q in enumerate(req.queries))))}
 
     # ------------------------------------------------------------------ meshes
-    @app.get("/meshes/{mesh_id}", summary="a mesh record with its views (captions, image URLs)")
+    @app.get(
+        "/meshes/{mesh_id}", summary="a mesh record (size, bounds, units) with its views (captions, URLs)"
+    )
     async def mesh(mesh_id: str):
         def work(r):
             rec = r.mesh(mesh_id)
             views = r.candidate_views([mesh_id])
             return rec, views
 
+        from pipeline.query.handoff import metric_info
+
         rec, views = await service.run(_not_found(work))
         out = {k: _jsonable(v) for k, v in rec.items()}
+        out.update(metric_info(rec))  # units_guess, units_from, scale_to_metres, extent_m (issue 19)
         out["views"] = [
             {
                 "view_index": v["view_index"],
@@ -279,12 +294,21 @@ def create_app(service: QueryService, *, token: str | None = None) -> FastAPI:
 
     @app.get(
         "/meshes/{mesh_id}/export",
-        summary="the mesh file with its materials and textures (zip)",
+        summary="the mesh in metres (or mm, or as is) with its materials, textures and model_info.json (zip)",
         response_class=Response,
         responses={200: {"content": {"application/zip": {}}}},
     )
-    async def export(mesh_id: str):
-        data, name = await service.run(_not_found(_export_zip), mesh_id)
+    async def export(
+        mesh_id: str,
+        units: Annotated[str, Query(description="m (default) | mm | source")] = "m",
+        format: Annotated[str, Query(description="mesh (the source file type) | bop")] = "mesh",
+        view: Annotated[
+            int | None, Query(description="view whose pose prior goes into model_info.json")
+        ] = None,
+    ):
+        from pipeline.serve.answer import export_zip
+
+        data, name = await service.run(_not_found(export_zip), mesh_id, units, format, view)
         return Response(
             data,
             media_type="application/zip",
@@ -306,24 +330,6 @@ def _not_found(fn):
             raise
 
     return wrapped
-
-
-def _export_zip(retriever, mesh_id: str) -> tuple[bytes, str]:
-    """The mesh and its referenced files as a zip (relative paths kept), via the CLI's ``export_mesh``."""
-    import tempfile
-    import zipfile
-    from pathlib import Path
-
-    from pipeline.query.export import export_mesh
-
-    rec = retriever.mesh(mesh_id)
-    with tempfile.TemporaryDirectory(prefix="oscar-export-") as tmp:
-        folder, files, _ = export_mesh(rec, tmp)
-        buf = io.BytesIO()
-        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
-            for f in files:
-                z.write(f, Path(folder.name) / Path(f).relative_to(folder))
-        return buf.getvalue(), folder.name
 
 
 def _jsonable(value):

@@ -17,6 +17,7 @@ service and the evaluation sweeps, all rank here; no step calls a model, so re-r
 ``verify``        local-feature inliers of the top candidates fused into their score (``inliers``, ``fused``)
 ``acceptance``    the open-set verdict: calibrated ``confidence`` and ``accepted`` (pipeline.query.accept)
 ``candidates``    the top of the order as result records
+``handoff``       the records' pose-estimator fields: units, metric size, best-view pose (pipeline.query.handoff)
 ``view_ranking``  the view-level ranking of stage 2 (paper mAP@k), on request
 ``caption_ranking``  text-only's caption-level ranking, on request
 ================  =====================================================================================
@@ -34,6 +35,7 @@ from pipeline.query.steps import (
     candidates,
     caption_ranking,
     fuse,
+    handoff,
     learned,
     shortlist,
     stage2,
@@ -65,6 +67,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),
+        Step(handoff.run),
         Step(view_ranking.run),
     ),
     "text-only": (
@@ -72,6 +75,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(stage2.run, {"per_view": False}),
         Step(acceptance.run, {"key": "text"}),
         Step(candidates.run),
+        Step(handoff.run),
         Step(caption_ranking.run),
     ),
     "image-only": (
@@ -82,6 +86,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),
+        Step(handoff.run),
         Step(view_ranking.run),
     ),
 }

@@ -3,7 +3,8 @@
 * :class:`RankRequest`: the knobs of one ranking (mode, tau, fallback k and unit, top, prompt weight,
   verification, view-level output), validated once.
 * :class:`RankContext`: what the steps read and never change: the stage-1 text filter, the stage-2 view
-  reranker, the local-feature verifier, the active meshes' columns and the query settings.
+  reranker, the local-feature verifier, the active meshes' columns, the query settings, the open-set
+  calibration and the pose-estimator hand-off.
 * :class:`RankState`: the candidates (positions in the store's active meshes), their scores per channel, the
   best view per channel, the current order, and what the result reports (fallback, deciding stage, notes,
   timings, view-level ranking). Arrays in ``scores`` and ``best_view`` are aligned with ``mesh_idx``; a new
@@ -92,6 +93,7 @@ class RankContext:
     calibration: Any = None  # pipeline.query.accept.Calibration of the open-set verdict (None: none)
     calibration_mismatch: str | None = None  # why the calibration does not apply to this store
     learned: Any = None  # pipeline.query.stage2.ViewReranker over the learned encoder's views, if any
+    handoff: Any = None  # pipeline.query.handoff.HandOff: the candidates' pose-estimator fields (None: none)
 
     @classmethod
     def from_meshes(cls, meshes, **parts) -> RankContext:

@@ -1,0 +1,1 @@
+"""From answers to a pose estimator's input: ``python -m pipeline.handoff`` (docs/handoff.md)."""
