@@ -256,7 +256,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     run = evaluate(engine, queries, library, plan, opts, sweeps=not args.no_sweeps, progress=_bar(progress))
 
     # adapters already loaded by the main retriever are shared with style onboarding and style retrievers
-    shared = dict(getattr(engine.retriever, "_models", {}))
+    shared = engine.retriever.models.snapshot()
     styles = _style_stores(args, out, shared)
     style_results = None
     if styles:
