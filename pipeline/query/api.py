@@ -22,28 +22,19 @@ from __future__ import annotations
 
 import time
 
+from pipeline.query.context import ranking_context
 from pipeline.query.embed import embed_roi, strategy_for
 from pipeline.query.errors import QueryError
-from pipeline.query.handoff import HandOff
 from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
-from pipeline.query.library import (
-    StoreTables,
-    check_learned,
-    check_models,
-    latest_onboarding,
-    query_profile,
-    store_version,
-)
+from pipeline.query.library import StoreTables, store_version
 from pipeline.query.models import QueryModels, roles_for
 from pipeline.query.modes import MODES
+from pipeline.query.opening import open_state
 from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi, make_roi
-from pipeline.query.settings import QuerySettings, settings_for
-from pipeline.query.stage2 import ViewReranker
+from pipeline.query.settings import QuerySettings
 from pipeline.query.steps import rank
-from pipeline.query.steps.state import RankContext
-from pipeline.query.verify import LocalVerifier
 
 
 class Retriever:
@@ -52,8 +43,6 @@ class Retriever:
     def __init__(
         self, store, profile, tables: StoreTables, settings: QuerySettings, *, device, models, threads
     ):
-        from pipeline.localfeat.config import VerifyConfig
-
         self.store, self.profile, self.tables = store, profile, tables
         self.settings, self.device = settings, device
         self.strategy = strategy_for(profile.clip_image_encoder is not None)
@@ -66,30 +55,12 @@ class Retriever:
         self.generation = 0  # bumped by each reload in place
         self._gate = Gate()
         self.open_args: dict = {}  # what open() was called with (reopened() repeats it)
-        from pipeline.index.choose import open_stage1  # exact scan or the vector index (--stage1)
-
-        try:
-            self.text_filter = open_stage1(store, tables, settings.stage1, threads)
-        except ValueError as exc:
-            raise QueryError(str(exc)) from None
-        self.reranker = ViewReranker(tables.views, tables.meshes.num_rows, device)
-        # the learned view encoder's table (issue 17), fused in steps/learned.py
-        learned = tables.learned_views if profile.learned_encoder is not None else None
-        self.learned = None if learned is None else ViewReranker(learned, tables.meshes.num_rows, device)
-        cfg = VerifyConfig(top=settings.verify_top, weight=settings.verify_weight)
-        self.verifier = LocalVerifier(
-            store, tables.onboarding, tables.meshes.column("mesh_id").to_pylist(), cfg
-        )
         self.mesh = tables.mesh
-        render = tables.onboarding.render_config()
-        mesh_ids = tables.meshes.column("mesh_id").to_pylist()
-        # issue 19: the pose-estimator hand-off (units, metric size, best-view pose) of every candidate;
-        # it reads the tables directly, not through the recovering view_poses (a query already holds the gate)
-        self.handoff = HandOff(self.mesh, tables.view_poses, render.up if render else "auto", mesh_ids)
-        parts = {"text_filter": self.text_filter, "reranker": self.reranker, "verifier": self.verifier}
-        parts |= {"learned": self.learned, "handoff": self.handoff}
-        self.ranking = RankContext.from_meshes(tables.meshes, **parts, settings=settings)
-        self._init_acceptance()
+        # the engines the steps call (pipeline.query.context): stage 1, stage 2, learned, verify, hand-off
+        self.ranking = ranking_context(store, profile, tables, settings, device=device, threads=threads)
+        ctx = self.ranking
+        self.text_filter, self.reranker, self.learned = ctx.text_filter, ctx.reranker, ctx.learned
+        self.verifier, self.handoff = ctx.verifier, ctx.handoff
 
     @classmethod
     def open(
@@ -125,62 +96,22 @@ class Retriever:
         return cls._open(**args)  # compaction removed files while opening: once more, on its result
 
     @classmethod
-    def _open(
-        cls,
-        store_path,
-        profile,
-        model_overrides,
-        device,
-        models,
-        *,
-        settings,
-        use_cache,
-        threads,
-        settings_changes,
-        preload,
-        lease,
-    ) -> Retriever:
-        from pipeline.leases import Lease
-        from pipeline.snapshot import open_snapshot
-
-        version = store_version(store_path)  # read first: a commit racing the open is seen next time
-        held = Lease(store_path, "retriever") if lease else None
+    def _open(cls, store_path, profile, model_overrides, device, models, *, preload, threads, **opts):
+        o = open_state(store_path, profile, model_overrides, **opts)
         try:
-            store = open_snapshot(store_path, held)
+            r = cls(o.store, o.profile, o.tables, o.settings, device=device, models=models, threads=threads)
         except BaseException:
-            if held is not None:
-                held.release()
+            o.store.close()
+            if o.lease is not None:
+                o.lease.release()
             raise
-        try:
-            onboarding = latest_onboarding(store)
-            prof = query_profile(onboarding, profile, model_overrides)
-            settings = (settings or settings_for(prof.name)).with_changes(**(settings_changes or {}))
-            strategy = strategy_for(prof.clip_image_encoder is not None)
-            # the caption and view spaces must match even for roles this query does not load
-            roles = {*strategy.roles(settings.prompt_weight > 0), "text_encoder", "view_encoder"}
-            check_models(onboarding, prof.name, {r: getattr(prof, r).key() for r in roles}, store.root)
-            check_learned(onboarding, prof.learned_encoder, store.root)
-            tables = StoreTables(store, onboarding, use_cache=use_cache)
-            r = cls(store, prof, tables, settings, device=device, models=models, threads=threads)
-            r.version, r.lease = version, held
-            r.open_args = {
-                "store_path": store_path,
-                "profile": prof.name,
-                "model_overrides": model_overrides,
-                "device": device,
-                "settings": settings,
-                "use_cache": use_cache,
-                "threads": threads,
-                "lease": lease,
-            }
-            if preload:
-                r.load_models(r.required_roles())
-            return r
-        except BaseException:
-            store.close()
-            if held is not None:
-                held.release()
-            raise
+        r.version, r.lease = o.version, o.lease
+        r.open_args = {"store_path": store_path, "profile": o.profile.name, "model_overrides": model_overrides}
+        r.open_args |= {"device": device, "threads": threads, "settings": o.settings}
+        r.open_args |= {"use_cache": opts["use_cache"], "lease": opts["lease"]}  # settings_changes: in settings
+        if preload:
+            r.load_models(r.required_roles())
+        return r
 
     def __enter__(self) -> Retriever:
         return self
@@ -285,20 +216,6 @@ class Retriever:
         result.query |= {"profile": self.profile.name, "roi": roi.describe(), "embedding": emb.describe()}
         result.roi = roi  # for --explain; not serialised
         return result
-
-    # ------------------------------------------------------------------ open-set acceptance
-    def _init_acceptance(self) -> None:
-        """The profile's acceptance calibration (pipeline.query.accept) and whether it fits this store."""
-        from pipeline.query.accept import CalibrationError, load_calibration
-
-        try:
-            self.calibration = load_calibration(self.profile.name, self.settings.accept_model)
-        except CalibrationError as exc:
-            raise QueryError(str(exc)) from None
-        models = self.tables.onboarding.models
-        self.calibration_mismatch = None if self.calibration is None else self.calibration.mismatch(models)
-        self.ranking.calibration = self.calibration
-        self.ranking.calibration_mismatch = self.calibration_mismatch
 
     def _check_accept_threshold(self, value) -> None:
         if value is not None and not 0.0 <= float(value) <= 1.0:

@@ -1,0 +1,57 @@
+"""What an opened store hands the ranking steps: its engines and the open-set calibration, built once.
+
+:func:`ranking_context` builds, for one store state, the stage-1 filter (exact scan or the vector index,
+``--stage1``), the stage-2 rerankers (the view encoder's and, where the store has its embeddings, the learned
+encoder's), local-feature verification, the pose-estimator hand-off and the acceptance calibration, and
+returns them in one :class:`~pipeline.query.steps.state.RankContext` (the steps read nothing else).
+"""
+
+from __future__ import annotations
+
+from pipeline.query.errors import QueryError
+from pipeline.query.handoff import HandOff
+from pipeline.query.stage2 import ViewReranker
+from pipeline.query.steps.state import RankContext
+from pipeline.query.verify import LocalVerifier
+
+
+def ranking_context(store, profile, tables, settings, *, device, threads) -> RankContext:
+    """The :class:`RankContext` of one opened store state (``tables``: :class:`StoreTables`)."""
+    from pipeline.index.choose import open_stage1
+    from pipeline.localfeat.config import VerifyConfig
+
+    try:
+        text_filter = open_stage1(store, tables, settings.stage1, threads)
+    except ValueError as exc:
+        raise QueryError(str(exc)) from None
+    n = tables.meshes.num_rows
+    learned = tables.learned_views if profile.learned_encoder is not None else None
+    mesh_ids = tables.meshes.column("mesh_id").to_pylist()
+    cfg = VerifyConfig(top=settings.verify_top, weight=settings.verify_weight)
+    render = tables.onboarding.render_config()
+    # the hand-off reads the tables directly, not through the Retriever's recovering view_poses (a query
+    # already holds the recovery gate)
+    handoff = HandOff(tables.mesh, tables.view_poses, render.up if render else "auto", mesh_ids)
+    ctx = RankContext.from_meshes(
+        tables.meshes,
+        text_filter=text_filter,
+        reranker=ViewReranker(tables.views, n, device),
+        learned=None if learned is None else ViewReranker(learned, n, device),
+        verifier=LocalVerifier(store, tables.onboarding, mesh_ids, cfg),
+        handoff=handoff,
+        settings=settings,
+    )
+    ctx.calibration, ctx.calibration_mismatch = calibration_for(profile, settings, tables.onboarding)
+    return ctx
+
+
+def calibration_for(profile, settings, onboarding):
+    """The profile's acceptance calibration (:mod:`pipeline.query.accept`) and why it does not fit this
+    store (``None`` when it does)."""
+    from pipeline.query.accept import CalibrationError, load_calibration
+
+    try:
+        calibration = load_calibration(profile.name, settings.accept_model)
+    except CalibrationError as exc:
+        raise QueryError(str(exc)) from None
+    return calibration, None if calibration is None else calibration.mismatch(onboarding.models)
