@@ -122,7 +122,8 @@ def test_cli_end_to_end_with_explain_and_export(
     assert data["candidates"][0]["name"] == "025_mug" and data["query"]["profile"] == "offline"
     assert (tmp_path / "sheet.png").stat().st_size > 10_000
     exported = {p.rsplit("/", 1)[-1] for p in data["exported_files"]}
-    assert exported == {p.name for p in (library / "025_mug").rglob("*") if p.is_file()}
+    mesh_files = {p.name for p in (library / "025_mug").rglob("*") if p.is_file()}
+    assert exported == mesh_files | {"model_info.json"}  # the mesh with its materials, plus the hand-off info
     box_argv = [
         "--store",
         str(store),

@@ -16,7 +16,7 @@ from pipeline.onboard.run import run_onboarding
 from pipeline.store import Store
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install 'oscar-pipeline[ray]')")
-pytestmark = pytest.mark.ray
+pytestmark = [pytest.mark.ray, pytest.mark.slow]  # Ray start-up dominates: CI runs these as its slow step
 
 MESHES = ["005_tomato_soup_can", "006_mustard_bottle", "011_banana"]
 RAY = RayOptions(render_batch_size=1, caption_batch_size=2, embed_batch_size=2, max_retries=1)

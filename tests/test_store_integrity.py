@@ -45,8 +45,9 @@ def test_each_table_opens_with_deltalake_and_polars(built):
         assert DeltaTable(str(store / table)).to_pyarrow_table().num_rows == n, table
         assert pl.scan_delta(str(store / table)).select(pl.len()).collect().item() == n, table
         assert DeltaTable(str(store / table)).to_pandas().shape[0] == n
-    for table in ("text_embeddings", "image_embeddings"):
-        (dataset,) = s.datasets(table)
+    datasets = [d for table in ("text_embeddings", "image_embeddings") for d in s.datasets(table)]
+    assert len(datasets) == 3  # captions (MiniLM); views: the descriptor and the learned encoder
+    for dataset in datasets:
         df = pl.scan_delta(str(store / dataset)).collect()
         assert df.height == 2 * V and set(df["view_index"]) == set(range(V))
         assert df["embedding"].list.len().unique().to_list() == [
