@@ -24,7 +24,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline.index.layout import check_files
-from pipeline.query.stage1 import FALLBACK_UNITS, Stage1Result
+from pipeline.query.stage1 import Stage1Result, checked_query
 
 
 class IndexDamaged(RuntimeError):
@@ -182,13 +182,7 @@ class IndexSnapshot:
         self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
     ) -> Stage1Result:
         """Same contract as :meth:`pipeline.query.stage1.TextFilter.run`."""
-        if fallback_unit not in FALLBACK_UNITS:
-            raise ValueError(
-                f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}"
-            )
-        q = np.asarray(query, dtype=np.float32).reshape(-1)
-        if q.shape[0] != self.dim:
-            raise ValueError(f"query vector has {q.shape[0]} dims, captions have {self.dim}")
+        q = checked_query(query, self.dim, fallback_unit)
         t0 = time.perf_counter()
         k = int(fallback_k)
         if threshold is not None:

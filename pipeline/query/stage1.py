@@ -47,6 +47,17 @@ class Stage1Result:
     seconds: float
 
 
+def checked_query(query, dim: int, fallback_unit: str) -> np.ndarray:
+    """``query`` as a flat float32 vector of width ``dim``; ValueError for another width or an unknown
+    fallback unit (the one check of every stage-1 engine: exact scan and vector index)."""
+    if fallback_unit not in FALLBACK_UNITS:
+        raise ValueError(f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}")
+    q = np.asarray(query, dtype=np.float32).reshape(-1)
+    if q.shape[0] != dim:
+        raise ValueError(f"query vector has {q.shape[0]} dims, captions have {dim}")
+    return q
+
+
 def vectors(table: pa.Table, column: str = "embedding") -> np.ndarray:
     """(n, dim) float32 view of a ``fixed_size_list<float32>`` column."""
     col = table.column(column).combine_chunks()
@@ -215,13 +226,7 @@ class TextFilter:
         return self._result(out, time.perf_counter() - t0)
 
     def _check(self, query, threshold, fallback_k, fallback_unit) -> tuple[np.ndarray, dict]:
-        if fallback_unit not in FALLBACK_UNITS:
-            raise ValueError(
-                f"unknown fallback unit {fallback_unit!r}; choose from {', '.join(FALLBACK_UNITS)}"
-            )
-        q = np.asarray(query, dtype=np.float32).reshape(-1)
-        if q.shape[0] != self.dim:
-            raise ValueError(f"query vector has {q.shape[0]} dims, captions have {self.dim}")
+        q = checked_query(query, self.dim, fallback_unit)
         params = {
             "threshold": None if threshold is None else float(threshold),
             "fallback_k": int(fallback_k),
