@@ -197,6 +197,15 @@ def machine_tokens(store: Path, queries: Path) -> dict[str, str]:
     shared = os.environ.get("OSCAR_SHARED_DATA")
     if shared:
         tokens[str(Path(shared).resolve())] = "<shared>"
+    # The store records where its library was onboarded from (candidates' ``library_root``): a store built
+    # from /work/shared/data/ycb and read where shared/ lies elsewhere (CI's clone) must capture the same.
+    # A root inside the checkout (the sample library) is already covered by <repo>.
+    from pipeline.evaluate.library import read_store_meshes
+
+    roots = sorted({m.library_root for m in read_store_meshes(str(store))} - {""})
+    outside = [r for r in roots if not Path(r).resolve().is_relative_to(REPO)]
+    for i, root in enumerate(outside):
+        tokens[root] = "<library>" if len(outside) == 1 else f"<library{i}>"
     return dict(sorted(tokens.items(), key=lambda kv: -len(kv[0])))  # longest first
 
 
