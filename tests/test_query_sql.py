@@ -263,7 +263,7 @@ def test_sliced_layout_keeps_the_inner_product(dim):
 
 @pytest.mark.parametrize("unit_", ["captions", "meshes"])
 def test_blas_kernel_matches_the_all_sql_reference(unit_):
-    """``run_blas`` (BLAS scores + stage1_select.sql) gives the answer of ``run`` (stage1_text_filter.sql)."""
+    """``run_blas`` (BLAS scores + stage1_select.sql) gives the answer of ``run_sql`` (stage1_text_filter.sql)."""
     rng = np.random.default_rng(7)
     mesh = rng.permutation(np.repeat(np.arange(60), 5))  # rows in no particular order, like the cache
     vecs = unit(rng.standard_normal((len(mesh), 20)))
@@ -271,7 +271,31 @@ def test_blas_kernel_matches_the_all_sql_reference(unit_):
     for q in unit(rng.standard_normal((6, 20))):
         s = np.sort(vecs @ q)[::-1]
         for tau in (None, float(s[3] + s[4]) / 2, float(s[40] + s[41]) / 2, 1.5):
-            a, b = f.run_blas(q, tau, 7, unit_), f.run(q, tau, 7, unit_)
+            a, b = f.run_blas(q, tau, 7, unit_), f.run_sql(q, tau, 7, unit_)
             assert a.mesh_idx.tolist() == b.mesh_idx.tolist() and a.used_fallback == b.used_fallback
             np.testing.assert_allclose(a.scores, b.scores, atol=1e-6)
+    f.close()
+
+
+def test_run_picks_the_kernel_by_table_size(monkeypatch):
+    """``run`` is the all-SQL reference on small tables and the BLAS kernel from BLAS_MIN_ROWS rows on,
+    with the same models in the same order (and NumPy's ranking)."""
+    import pipeline.query.stage1 as stage1
+
+    rng = np.random.default_rng(3)
+    mesh = rng.permutation(np.repeat(np.arange(40), 4))
+    vecs = unit(rng.standard_normal((len(mesh), 12)))
+    f = TextFilter(captions(list(zip(mesh.tolist(), vecs.tolist(), strict=True))))
+    used = []
+    monkeypatch.setattr(f, "run_blas", lambda *a: used.append("blas") or TextFilter.run_blas(f, *a))
+    monkeypatch.setattr(f, "run_sql", lambda *a: used.append("sql") or TextFilter.run_sql(f, *a))
+    q = unit(rng.standard_normal(12))
+    small = f.run(q, None, 40, "meshes")
+    monkeypatch.setattr(stage1, "BLAS_MIN_ROWS", len(mesh))
+    large = f.run(q, None, 40, "meshes")
+    assert used == ["sql", "blas"]
+    best = np.full(40, -np.inf)
+    np.maximum.at(best, mesh, vecs @ q)
+    assert small.mesh_idx.tolist() == large.mesh_idx.tolist() == np.argsort(-best, kind="stable").tolist()
+    np.testing.assert_allclose(large.scores, best[large.mesh_idx], atol=1e-6)
     f.close()

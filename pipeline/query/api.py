@@ -20,21 +20,19 @@ in place and retries once (:mod:`pipeline.query.recover`; ``retriever.recover = 
 
 from __future__ import annotations
 
-import time
-
 from pipeline.query.context import ranking_context
 from pipeline.query.embed import embed_roi, strategy_for
-from pipeline.query.errors import QueryError
-from pipeline.query.images import clean_prompt, load_mask, load_photo, parse_box
+from pipeline.query.images import clean_prompt
+from pipeline.query.inputs import check_knobs, roi_from_inputs
 from pipeline.query.library import StoreTables, store_version
 from pipeline.query.models import QueryModels, roles_for
-from pipeline.query.modes import MODES
 from pipeline.query.opening import open_state
 from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
-from pipeline.query.roi import Roi, make_roi
+from pipeline.query.roi import Roi
 from pipeline.query.settings import QuerySettings
 from pipeline.query.steps import rank
+from pipeline.query.timing import PartClock
 
 
 class Retriever:
@@ -58,9 +56,9 @@ class Retriever:
         self.mesh = tables.mesh
         # the engines the steps call (pipeline.query.context): stage 1, stage 2, learned, verify, hand-off
         self.ranking = ranking_context(store, profile, tables, settings, device=device, threads=threads)
-        ctx = self.ranking
-        self.text_filter, self.reranker, self.learned = ctx.text_filter, ctx.reranker, ctx.learned
-        self.verifier, self.handoff = ctx.verifier, ctx.handoff
+        c = self.ranking  # its engines, also as attributes of the Retriever (tests, benchmarks, evaluation)
+        self.text_filter, self.reranker, self.learned = c.text_filter, c.reranker, c.learned
+        self.verifier, self.handoff = c.verifier, c.handoff
 
     @classmethod
     def open(
@@ -152,25 +150,7 @@ class Retriever:
 
     def make_roi(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm") -> Roi:
         """Validate the inputs and cut the prompted object out of ``image`` (path, PIL image or array)."""
-        s = self.settings
-        prompt = clean_prompt(prompt, s.max_prompt_chars)
-        photo = load_photo(image, max_side=s.max_side, min_side=s.min_side)
-        box_v = parse_box(box) if box is not None else None
-        mask_v = load_mask(mask, photo, s.min_roi_side) if mask is not None else None
-        opts = {"background": s.background, "min_side": s.min_roi_side, "box_segmenter": s.box_segmenter}
-        roi = make_roi(
-            photo,
-            prompt,
-            box=box_v,
-            mask=mask_v,
-            roi_mode=roi_mode,
-            model=self.model,
-            profile=self.profile.name,
-            **opts,
-        )
-        roi.notes.extend([] if photo.scale == 1.0 else [f"image downscaled by {photo.scale:.3f}"])
-        roi.photo_source, roi.photo_size = photo.source, photo.original_size
-        return roi
+        return roi_from_inputs(self.settings, self.model, self.profile.name, image, prompt, box, mask, roi_mode)
 
     def embed(self, roi: Roi, prompt: str) -> QueryEmbedding:
         """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
@@ -192,34 +172,17 @@ class Retriever:
     def query(self, image, prompt: str, box=None, mask=None, roi_mode: str = "segm", **knobs) -> QueryResult:
         """ROI, embedding and ranking (``knobs`` as :meth:`rank`'s) of one photo + prompt, with a per-part
         latency breakdown (model loading counted apart)."""
-        if knobs.get("mode") is not None and knobs["mode"] not in MODES:
-            raise QueryError(f"unknown mode {knobs['mode']!r}; choose from {', '.join(MODES)}")
-        self._check_accept_threshold(knobs.get("accept_threshold"))
-        loaded = sum(self.load_seconds.values())
-        t0 = time.perf_counter()
-        roi = self.make_roi(image, prompt, box=box, mask=mask, roi_mode=roi_mode)
-        t1 = time.perf_counter()
-        load_roi = sum(self.load_seconds.values()) - loaded
-        emb = self.embed(roi, prompt)
-        t2 = time.perf_counter()
-        load_emb = sum(self.load_seconds.values()) - loaded - load_roi
+        check_knobs(knobs)
+        clock = PartClock(self.load_seconds)
+        roi = clock.part("roi_ms", self.make_roi, image, prompt, box=box, mask=mask, roi_mode=roi_mode)
+        emb = clock.part("embed_ms", self.embed, roi, prompt)
         result = self.rank(emb, **knobs)
-        result.timings = {
-            "model_load_ms": (load_roi + load_emb) * 1000,
-            "roi_ms": (t1 - t0 - load_roi) * 1000,
-            "embed_ms": (t2 - t1 - load_emb) * 1000,
-            **result.timings,
-            "total_ms": (time.perf_counter() - t0) * 1000,
-        }
+        result.timings = clock.timings(result.timings)
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         result.query = {"image": roi.photo_source, "image_size": list(roi.photo_size), "prompt": prompt}
         result.query |= {"profile": self.profile.name, "roi": roi.describe(), "embedding": emb.describe()}
         result.roi = roi  # for --explain; not serialised
         return result
-
-    def _check_accept_threshold(self, value) -> None:
-        if value is not None and not 0.0 <= float(value) <= 1.0:
-            raise QueryError(f"accept threshold must be within [0, 1], got {value}")
 
     @recovering
     def candidate_views(self, mesh_ids: list[str]) -> list[dict]:

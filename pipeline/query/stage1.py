@@ -15,8 +15,10 @@ third at 1M rows (docs/performance.md (Query)). The sum is the same inner produc
 contiguous copy of the vectors made on first use), takes the max per model (one ``reduceat`` over rows grouped by model once), and lets
 ``sql/stage1_select.sql`` apply tau and the fallback: DuckDB's ``list_dot_product`` made the all-SQL
 version 3.1x the NumPy floor at 1M rows, this one is within 2x (docs/performance.md, "Stage-1 index").
-:meth:`TextFilter.run` (the default, what queries use) stays the all-SQL statement: ``run_blas`` changes
-scores at the 1e-7 level, which the golden rankings (tests/golden) would have to be re-recorded for.
+:meth:`TextFilter.run` (what queries use) picks by size: the all-SQL statement (:meth:`TextFilter.run_sql`,
+the reference) below :data:`BLAS_MIN_ROWS` caption rows, where it costs well under a millisecond and its
+float rounding is what the golden rankings (tests/golden) pin; ``run_blas`` from there on, where the SQL's
+dot products are the cost. Both give the same models in the same order; scores agree to ~1e-7.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ SLICES = 8
 FALLBACK_UNITS = ("captions", "meshes")
 #: rows per Arrow record batch: DuckDB scans batches in parallel
 BATCH_ROWS = 65536
+#: from this many caption rows on, :meth:`TextFilter.run` computes the inner products with BLAS
+BLAS_MIN_ROWS = 100_000
 
 
 @dataclass
@@ -109,6 +113,7 @@ class TextFilter:
         self._idle: queue.SimpleQueue = queue.SimpleQueue()  # warm connections not in use
         self._all: list = []
         self._lock = threading.Lock()
+        self._kernel_lock = threading.Lock()
         self._duckdb = duckdb
         self._idle.put(self._connect())  # one warm connection up front (and early errors)
 
@@ -155,23 +160,27 @@ class TextFilter:
         One contiguous matrix, so a query is one BLAS matrix-vector product: a product per record batch
         and slice (128 calls at 1M rows) cost 6x more under load, in thread start-up, than the one call.
         The copy replaces the memory-mapped slices in the hot path (their pages are no longer touched)."""
-        if self._kernel is None:
-            x = np.empty((self.n_rows, self.width * SLICES), np.float32)
-            offset = 0
-            for batch in self.table.to_batches():
-                for i in range(SLICES):
-                    col = batch.column(f"e{i}")
-                    flat = np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float32)
-                    x[offset : offset + len(col), i * self.width : (i + 1) * self.width] = flat.reshape(
-                        len(col), self.width
-                    )
-                offset += batch.num_rows
-            mesh = self.table.column("mesh_idx").to_numpy().astype(np.int32)
-            order = np.argsort(mesh, kind="stable")
-            sm = mesh[order]
-            starts = np.flatnonzero(np.concatenate(([True], sm[1:] != sm[:-1]))) if len(sm) else sm
-            self._kernel = (x, order, starts, sm[starts].astype(np.int32), mesh)
+        with self._kernel_lock:  # built once, also when concurrent queries arrive first together
+            if self._kernel is None:
+                self._kernel = self._build_kernel()
         return self._kernel
+
+    def _build_kernel(self) -> tuple:
+        x = np.empty((self.n_rows, self.width * SLICES), np.float32)
+        offset = 0
+        for batch in self.table.to_batches():
+            for i in range(SLICES):
+                col = batch.column(f"e{i}")
+                flat = np.asarray(col.flatten().to_numpy(zero_copy_only=False), np.float32)
+                x[offset : offset + len(col), i * self.width : (i + 1) * self.width] = flat.reshape(
+                    len(col), self.width
+                )
+            offset += batch.num_rows
+        mesh = self.table.column("mesh_idx").to_numpy().astype(np.int32)
+        order = np.argsort(mesh, kind="stable")
+        sm = mesh[order]
+        starts = np.flatnonzero(np.concatenate(([True], sm[1:] != sm[:-1]))) if len(sm) else sm
+        return x, order, starts, sm[starts].astype(np.int32), mesh
 
     def scores(self, query: np.ndarray) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """(per caption row: inner product, per model: (mesh_idx, max over its captions)) for ``query``."""
@@ -187,7 +196,15 @@ class TextFilter:
     ) -> Stage1Result:
         """Models scoring >= ``threshold`` (best first); when none does (or ``threshold`` is ``None``) the
         fallback: the distinct models of the ``fallback_k`` best captions (``fallback_unit="captions"``, the
-        paper's) or the ``fallback_k`` best models (``"meshes"``). All in SQL (``sql/stage1_text_filter.sql``)."""
+        paper's) or the ``fallback_k`` best models (``"meshes"``). :meth:`run_sql` below
+        :data:`BLAS_MIN_ROWS` caption rows, :meth:`run_blas` from there on (the same answer)."""
+        kernel = self.run_blas if self.n_rows >= BLAS_MIN_ROWS else self.run_sql
+        return kernel(query, threshold, fallback_k, fallback_unit)
+
+    def run_sql(
+        self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
+    ) -> Stage1Result:
+        """:meth:`run` all in SQL (``sql/stage1_text_filter.sql``): the reference."""
         q, params = self._check(query, threshold, fallback_k, fallback_unit)
         t0 = time.perf_counter()
         with self.connection() as con:
