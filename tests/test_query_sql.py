@@ -293,7 +293,10 @@ def test_run_picks_the_kernel_by_table_size(monkeypatch):
     small = f.run(q, None, 40, "meshes")
     monkeypatch.setattr(stage1, "BLAS_MIN_ROWS", len(mesh))
     large = f.run(q, None, 40, "meshes")
-    assert used == ["sql", "blas"]
+    monkeypatch.setattr(stage1, "BLAS_MAX_BYTES", 1000)  # a copy this large is not made: the SQL scan
+    f._kernel = None
+    f.run(q, None, 40, "meshes")
+    assert used == ["sql", "blas", "sql"]
     best = np.full(40, -np.inf)
     np.maximum.at(best, mesh, vecs @ q)
     assert small.mesh_idx.tolist() == large.mesh_idx.tolist() == np.argsort(-best, kind="stable").tolist()

@@ -39,8 +39,11 @@ SLICES = 8
 FALLBACK_UNITS = ("captions", "meshes")
 #: rows per Arrow record batch: DuckDB scans batches in parallel
 BATCH_ROWS = 65536
-#: from this many caption rows on, :meth:`TextFilter.run` computes the inner products with BLAS
+#: from this many caption rows on, :meth:`TextFilter.run` computes the inner products with BLAS ...
 BLAS_MIN_ROWS = 100_000
+#: ... while its contiguous copy of the vectors stays this small (past it, the memory-mapped SQL scan;
+#: stores that large use the index by default, ``--stage1 auto``)
+BLAS_MAX_BYTES = 4 << 30
 
 
 @dataclass
@@ -197,8 +200,11 @@ class TextFilter:
         """Models scoring >= ``threshold`` (best first); when none does (or ``threshold`` is ``None``) the
         fallback: the distinct models of the ``fallback_k`` best captions (``fallback_unit="captions"``, the
         paper's) or the ``fallback_k`` best models (``"meshes"``). :meth:`run_sql` below
-        :data:`BLAS_MIN_ROWS` caption rows, :meth:`run_blas` from there on (the same answer)."""
-        kernel = self.run_blas if self.n_rows >= BLAS_MIN_ROWS else self.run_sql
+        :data:`BLAS_MIN_ROWS` caption rows and past :data:`BLAS_MAX_BYTES` of vectors, :meth:`run_blas`
+        between (the same answer)."""
+        copy_bytes = self.n_rows * self.width * SLICES * 4
+        blas = BLAS_MIN_ROWS <= self.n_rows and (copy_bytes <= BLAS_MAX_BYTES or self._kernel is not None)
+        kernel = self.run_blas if blas else self.run_sql
         return kernel(query, threshold, fallback_k, fallback_unit)
 
     def run_sql(
