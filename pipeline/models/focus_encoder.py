@@ -16,6 +16,7 @@ L2-normalised float32, so the stage-2 score is a cosine.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ from PIL import Image
 
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import ModelLoadError
+from pipeline.models.traced import hidden_states, traced_backbone, traced_path
 
 POOLINGS = ("cls", "mean", "patch", "cls+patch")
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
@@ -90,19 +92,36 @@ class LearnedViewEncoder:
         self.batch_size = max(int(batch_size), 1)
         self.fill = tuple(fill) if fill is not None else tuple(GRAY)
         self.directory = self._directory(model_id)
-        from pipeline.models.focus_weights import load_backbone
-        from pipeline.models.hf_common import quiet_transformers, resolve_device
+        from pipeline.models.hf_common import resolve_device
 
-        with quiet_transformers():
-            net = load_backbone(self.directory)
-        patch = int(net.config.patch_size)
+        try:
+            config = json.loads((self.directory / "config.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise ModelLoadError(f"learned view encoder {self.directory}: unreadable config.json ({exc})") from exc
+        patch, hidden = int(config.get("patch_size", 14)), int(config.get("hidden_size", 384))
         self.size = int(size)
         if self.size < patch or self.size % patch:
             raise ModelLoadError(f"input size {size} must be a positive multiple of the {patch} px patch")
         self.device = resolve_device(device)
-        self.net = net.to(self.device)
-        hidden = int(net.config.hidden_size)
+        if model_id == PACKAGE_ID and self.device.type == "cpu":  # the cached TorchScript copy: fast start
+            from pipeline.models.hf_common import quiet_transformers
+
+            def traced():  # tracing runs the eager model: keep its one-off config notices quiet
+                with quiet_transformers():
+                    return traced_backbone(self.directory, self.size, self._eager)
+
+            path = traced_path(self.directory, self.size)
+            self.net = traced_backbone(self.directory, self.size, self._eager) if path.is_file() else traced()
+        else:
+            self.net = hidden_states(self._eager()).to(self.device)
         self.dim = 2 * hidden if pooling == "cls+patch" else hidden
+
+    def _eager(self):
+        from pipeline.models.focus_weights import load_backbone
+        from pipeline.models.hf_common import quiet_transformers
+
+        with quiet_transformers():
+            return load_backbone(self.directory)
 
     @staticmethod
     def _directory(model_id: str) -> Path:
@@ -125,7 +144,7 @@ class LearnedViewEncoder:
         for i in range(0, len(images), self.batch_size):
             x = torch.from_numpy(pixel_batch(images[i : i + self.batch_size], self.size, self.fill))
             with torch.inference_mode():
-                h = self.net(pixel_values=x.to(self.device)).last_hidden_state
+                h = self.net(x.to(self.device))
             out.append(h.float().cpu().numpy())
         if not out:
             return np.zeros((0, 1, self.dim), np.float32)

