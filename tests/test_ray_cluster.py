@@ -29,6 +29,7 @@ from pipeline.onboard.config import OnboardConfig
 from pipeline.onboard.engines.ray_cluster import RayEngineError
 from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.run import run_onboarding
+from pipeline.onboard.supervise import EXIT_DRIVER_LOST
 from pipeline.profiles import default_elevations
 from pipeline.store import Store
 
@@ -235,16 +236,18 @@ def test_driver_killed_rerun_completes(cluster, library, reference, tmp_path):
 def test_head_lost_stops_the_driver_and_rerun_completes(nodes, library, reference, tmp_path):
     """Last in this module: the cluster does not survive it. The driver runs on the head's raylet (as on a
     real cluster, where it runs on the head node), so Ray's core worker ends the driver's process as
-    soon as that raylet dies: a non-zero exit without a Python traceback, and a consistent store that the
-    re-run completes. (A driver on another machine reports the lost head in one line instead.)"""
+    soon as that raylet dies; the supervising CLI (pipeline/onboard/supervise.py) then says so in one line
+    and exits 75, without a Python traceback, and the store is consistent and the re-run completes."""
     nodes.refill()
     store = tmp_path / "store"
     proc = cli(library, store, "--address", nodes.address)
     wait_for_commit(store, proc)
     nodes.cluster.remove_node(nodes.cluster.head_node, allow_graceful=False)
     out, err = proc.communicate(timeout=180)
-    assert proc.returncode != 0
+    assert proc.returncode == EXIT_DRIVER_LOST, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
+    lines = [ln for ln in err.splitlines() if "ended abruptly" in ln]
+    assert len(lines) == 1 and "head node" in lines[0] and "Ray logs" in lines[0], err[-3000:]
     assert not fsck(store).problems
     summary = run_onboarding(str(library), str(store), config("local"), progress=False)
     assert summary.failed == 0 and summary.rendered < len(MESHES)

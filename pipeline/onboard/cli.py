@@ -176,7 +176,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from pipeline.onboard import supervise
+
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    if args.engine == "ray" and not supervise.is_child():
+        return supervise.supervise(argv)  # the driver in a child: a lost head still gets a clear line
+    try:
+        code = run(args)
+    except SystemExit as exc:
+        supervise.note_exit(exc.code if isinstance(exc.code, int) else 1)
+        raise
+    except BaseException:
+        supervise.note_exit(1)  # a Python error (its traceback is printed): not a driver ended from outside
+        raise
+    supervise.note_exit(code)
+    return code
+
+
+def run(args) -> int:
+    """The onboarding command on parsed arguments; its exit code."""
     from pathlib import Path
 
     from pipeline.localfeat import FeatureConfig

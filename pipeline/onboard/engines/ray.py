@@ -544,4 +544,7 @@ def _start_ray(opts: RayOptions) -> bool:
     except Exception as exc:  # unreachable cluster, bad address
         where = opts.address or "a local instance"
         raise RayEngineError(f"cannot start Ray on {where}: {type(exc).__name__}: {exc}") from exc
+    from pipeline.onboard.supervise import note_ray_logs
+
+    note_ray_logs(log_dir())
     return True
