@@ -236,20 +236,30 @@ def test_driver_killed_rerun_completes(cluster, library, reference, tmp_path):
 def test_head_lost_stops_the_driver_and_rerun_completes(nodes, library, reference, tmp_path):
     """Last in this module: the cluster does not survive it. The driver runs on the head's raylet (as on a
     real cluster, where it runs on the head node), so Ray's core worker ends the driver's process as
-    soon as that raylet dies; the supervising CLI (pipeline/onboard/supervise.py) then says so in one line
-    and exits 75, without a Python traceback, and the store is consistent and the re-run completes."""
+    soon as that raylet dies, and the supervising CLI (pipeline/onboard/supervise.py) says so; or the
+    engine's probe of the head's GCS port notices first. Either way one line, no Python traceback, a
+    consistent store, and a re-run that completes."""
     nodes.refill()
-    store = tmp_path / "store"
-    proc = cli(library, store, "--address", nodes.address)
-    wait_for_commit(store, proc)
+    store, marker = tmp_path / "store", tmp_path / "paused"
+    # the last mesh's render waits (a minute) once reached, so the head dies mid-run, not after it
+    pause = f"render:{mesh_id(reference, MESHES[-1])}:{marker}"
+    proc = cli(library, store, "--address", nodes.address, "--ray-pause-at", pause)
+    deadline = time.monotonic() + 300
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.1)
     nodes.cluster.remove_node(nodes.cluster.head_node, allow_graceful=False)
     out, err = proc.communicate(timeout=180)
-    assert proc.returncode == EXIT_DRIVER_LOST, err[-3000:]
+    # whichever notices first says so in one line: the engine's probe of the head's GCS port (exit 2), or,
+    # when Ray's core worker ends the driver first, the supervising CLI (exit 75)
+    assert proc.returncode in (2, EXIT_DRIVER_LOST), (out[-3000:], err[-3000:])
     assert "Traceback" not in err, err[-3000:]
-    lines = [ln for ln in err.splitlines() if "ended abruptly" in ln]
-    assert len(lines) == 1 and "head node" in lines[0] and "Ray logs" in lines[0], err[-3000:]
+    lines = [ln for ln in err.splitlines() if ln.startswith("error:")]
+    said = "lost the Ray head node" if proc.returncode == 2 else "ended abruptly"
+    assert len(lines) == 1 and said in lines[0] and "Ray logs" in lines[0], err[-3000:]
     assert not fsck(store).problems
     summary = run_onboarding(str(library), str(store), config("local"), progress=False)
-    assert summary.failed == 0 and summary.rendered < len(MESHES)
+    assert summary.failed == 0 and summary.rendered <= len(MESHES)
     assert_same_store(reference, store)
     assert_no_duplicates(store)

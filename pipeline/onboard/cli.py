@@ -169,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="GPUs per model actor (default: encoders a quarter, captioners share the rest)",
     )
+    # tests only (RayOptions.pause_at): an actor waits at STAGE:MESH_ID_PREFIX:MARKER for a node to be killed
+    p.add_argument("--ray-pause-at", default="", help=argparse.SUPPRESS)
     add_torch_threads_arg(p, "every core (onboarding is throughput work)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
@@ -242,6 +244,7 @@ def run(args) -> int:
                 caption_actors=args.ray_caption_actors,
                 embed_actors=args.ray_embed_actors,
                 gpus_per_actor=args.ray_gpus_per_actor,
+                pause_at=args.ray_pause_at,
             ),
         )
         cfg.fingerprints()
