@@ -54,6 +54,16 @@ def learned_scores(feats: Path, size: int, flip: int, pool: str, n_meshes: int) 
     return out
 
 
+def dumped_cues(recs: list[dict]):
+    """(descriptor, text, inliers, expected mesh indices, ROI kind, photo) of the dumped query records."""
+    desc = np.array([r["desc"] for r in recs], np.float32)
+    text = np.array([r["text"] for r in recs], np.float32)
+    inl = np.array([r["inliers"] for r in recs], np.float32)
+    kind = np.array([r["kind"] for r in recs])
+    photo = np.array([r["photo"] for r in recs])
+    return desc, text, inl, [r["expected"] for r in recs], kind, photo
+
+
 def ranks_of(score: np.ndarray, expected: list[list[int]]) -> np.ndarray:
     r = np.empty(len(score), np.int64)
     for i, exp in enumerate(expected):
@@ -112,12 +122,7 @@ def main() -> int:
     feats = Path(args.feats)
     recs = json.loads((feats / "queries.json").read_text())
     n_meshes = len(json.loads((feats / "meshes.json").read_text()))
-    desc = np.array([r["desc"] for r in recs], np.float32)
-    text = np.array([r["text"] for r in recs], np.float32)
-    inl = np.array([r["inliers"] for r in recs], np.float32)
-    expected = [r["expected"] for r in recs]
-    kind = np.array([r["kind"] for r in recs])
-    photo = np.array([r["photo"] for r in recs])
+    desc, text, inl, expected, kind, photo = dumped_cues(recs)
     label = np.array([r["label"] for r in recs])
     groups = photo if args.folds == "photo" else label
     s1 = stage1_mask(text)
