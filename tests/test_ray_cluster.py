@@ -42,7 +42,7 @@ WORKERS = 2
 
 
 def config(engine: str, **ray_kw) -> OnboardConfig:
-    opts = RayOptions(render_batch_size=1, caption_batch_size=2, embed_batch_size=2, **ray_kw)
+    opts = RayOptions(render_batch_size=1, caption_batch_size=2, embed_batch_size=2, stall_s=20, **ray_kw)
     render = RenderConfig(resolution=RESOLUTION, elevations_deg=default_elevations("offline"))  # as the CLI's
     return OnboardConfig(render=render, engine=engine, workers=0, batch_size=2, ray=opts)
 

@@ -34,6 +34,7 @@ from pipeline.onboard.engines.ray_cluster import (
     log_dir,
     quiet_console,
     quiet_driver_core,
+    waiting_actors,
 )
 from pipeline.onboard.engines.ray_options import RayOptions
 from pipeline.onboard.engines.ray_workers import (
@@ -101,6 +102,14 @@ def plan_layout(
     return Layout(workers, render_cpus, model_cpus, caption_gpus, embed_gpus)
 
 
+class RoundStalled(Exception):
+    """A round that stopped moving after a node loss (see ``RayOptions.stall_s``); what it committed."""
+
+    def __init__(self, received: set[str], waited: float, actors: int) -> None:
+        super().__init__(f"no batch for {waited:.0f} s after a node loss, {actors} actor(s) waiting")
+        self.received = received
+
+
 class RayEngine(Engine):
     """Runs a :class:`Plan` on Ray Data; models live in the actors, never in the driver."""
 
@@ -111,6 +120,7 @@ class RayEngine(Engine):
         self.layout: Layout | None = None
         self.library_root: str | None = None
         self._pumps: list = []  # the threads that read each round's results
+        self._started = False  # this run connected to Ray (and may disconnect and connect again)
 
     # ------------------------------------------------------------------ run
     def run(self, library: str) -> RunSummary:
@@ -122,7 +132,7 @@ class RayEngine(Engine):
             bars = progress_bars(self.progress, self.run_spec, plan)
             try:
                 with Timer(self.seconds, "ray_start"):
-                    started = _start_ray(self.cfg.ray)
+                    started = self._started = _start_ray(self.cfg.ray)
                 with quiet_console():  # until Ray Data's threads of an aborted round have ended too
                     try:
                         self._run_dataset(plan, items, bars, summary)
@@ -228,7 +238,12 @@ class RayEngine(Engine):
         infra: dict[str, int] = {}
         pending, isolate, received_any = items, False, False
         while pending:
-            received = self._round(plan, pending, bars, summary, watch, isolate)
+            try:
+                received = self._round(plan, pending, bars, summary, watch, isolate)
+            except RoundStalled as stalled:  # planned for nodes that are gone: plan again on those alive
+                log.info("round abandoned: %s", stalled)
+                received = stalled.received
+                self._reconnect(watch, pending, received)
             received_any |= bool(received)
             if self.stop.requested:  # interrupted: no new round; the re-run does the rest
                 break
@@ -314,13 +329,16 @@ class RayEngine(Engine):
         thread.start()
         self._pumps.append(thread)
         received: set[str] = set()
+        lost_before, moved = len(watch.lost), time.monotonic()
         try:
             while True:
                 try:
                     kind, value = out.get(timeout=WATCH_PERIOD_S)
                 except queue.Empty:
                     self._watch(watch, items, received)
+                    self._check_stalled(watch, lost_before, moved, received)
                     continue
+                moved = time.monotonic()
                 if kind == "end":
                     return received
                 if kind == "error":
@@ -345,6 +363,49 @@ class RayEngine(Engine):
             raise setup from exc
         finally:
             stop.set()
+
+    def _check_stalled(self, watch: ClusterWatch, lost_before: int, moved: float, received: set[str]) -> None:
+        """Raise :class:`RoundStalled` when, since a node of this round was lost, no batch came for
+        ``stall_s`` seconds while an actor of the run waits to be placed."""
+        waited = time.monotonic() - moved
+        if waited < self.cfg.ray.stall_s:
+            return
+        watch.check()
+        if len(watch.lost) <= lost_before:
+            return
+        actors = waiting_actors()
+        if actors:
+            raise RoundStalled(set(received), waited, actors)
+
+    def _reconnect(self, watch: ClusterWatch, pending: list[dict], received: set[str]) -> None:
+        """Disconnect (Ray ends this driver's actors, the stalled round's with them) and connect again,
+        so that the next round is planned on the nodes alive. Only when this run connected to Ray itself;
+        a caller's own Ray session is not dropped: the run stops instead, what finished is committed."""
+        import threading
+
+        import ray
+        import ray._private.auto_init_hook as auto_init
+
+        left = len([r for r in pending if r["mesh_id"] not in received])
+        if not self._started:
+            raise RayEngineError(
+                f"the Ray cluster cannot finish: after losing {', '.join(watch.describe_lost())} its "
+                f"actors wait for room the surviving nodes lack; {left} meshes are not done, the finished "
+                f"ones are committed; run the same command again (Ray logs: {log_dir()})"
+            )
+        live = [t for t in self._pumps if t.is_alive()]
+        live += [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")]
+        saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
+        try:
+            try:
+                ray.shutdown()
+            except (Exception, SystemExit):  # noqa: BLE001 - reconnecting below reports a real failure
+                log.debug("ray.shutdown failed", exc_info=True)
+            for t in live:
+                t.join(timeout=PUMP_JOIN_S)
+        finally:
+            auto_init.enable_auto_connect = saved
+        self._started = _start_ray(self.cfg.ray)
 
     def _watch(self, watch: ClusterWatch, items: list[dict], received: set[str]) -> None:
         """While a round waits: stop when the head is gone or no node with CPUs is left."""

@@ -265,3 +265,20 @@ def quiet_driver_core():
 
 #: the environment variable Ray's C++ logging reads its threshold from
 CORE_LOG_LEVEL = "RAY_BACKEND_LOG_LEVEL"
+
+
+def waiting_actors() -> int:
+    """Actors of this driver's job waiting to be placed or restarted (Ray's GCS actor table; no
+    dashboard needed). 0 when the table cannot be read."""
+    import ray
+
+    try:
+        from ray._private.state import actors
+
+        job = ray.get_runtime_context().get_job_id()
+        table = actors()
+    except Exception:  # noqa: BLE001 - an internal table: without it no round is taken for stalled
+        return 0
+    waiting = ("PENDING_CREATION", "RESTARTING", "DEPENDENCIES_UNREADY")
+    return sum(1 for a in table.values() if a.get("State") in waiting and a.get("JobID") == job)
+

@@ -40,6 +40,11 @@ class RayOptions:
     #: re-submitted before the run stops with an error; a mesh that kills a fresh worker twice with no
     #: node lost is an ``errors`` row (WorkerCrash) instead.
     max_retries: int = 3
+    #: seconds a round may go without a batch, after a node was lost in it, while an actor of the run
+    #: waits to be placed: Ray Data then restarts the lost actors with the layout planned for the old
+    #: cluster and can wait for ever for room the survivors lack; the round is abandoned (the driver
+    #: reconnects, which ends its actors) and the rest is planned again on the nodes alive
+    stall_s: float = 120.0
     #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" kills the STAGE actor (render, caption,
     #: embed_text, embed_image) once, on the batch holding that mesh, if MARKER_FILE does not exist yet
     #: (it is created first); "STAGE:MESH_ID_PREFIX:" kills it on every attempt.
