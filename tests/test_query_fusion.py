@@ -149,3 +149,21 @@ def test_other_learned_encoder_than_the_store_is_one_line(learned_store, tmp_pat
             use_cache=False,
         )
     assert "\n" not in str(exc.value)
+
+
+def test_a_large_library_keeps_the_tau_cut_when_fusing(learned_store):
+    """Fusing ranks every model only up to fuse_all_max_models; past it stage 1's tau cut (or its top-k
+    fallback) makes the shortlist, which is then fused."""
+    img, mask = photo("red", 44, 52)
+    with Retriever.open(learned_store, models=models_with_learned(), use_cache=False) as r:
+        n = r.n_meshes
+        every = r.query(img, "the red can", mask=mask, top=n, threshold=1.5)
+        assert len(every.candidates) == n and not every.used_fallback  # all fused, tau is no cut
+    changes = {"fuse_all_max_models": n - 1}
+    with Retriever.open(learned_store, models=models_with_learned(), use_cache=False, settings_changes=changes) as r:
+        cut = r.query(img, "the red can", mask=mask, top=n, threshold=1.5, fallback_k=2, fallback_unit="meshes")
+        assert cut.used_fallback and len(cut.candidates) == 2  # nothing passes tau 1.5: the top-2 fallback
+        s = r.settings
+        c = cut.candidates[0]
+        want = (1 - s.fuse_desc - s.fuse_text) * c.learned_score + s.fuse_desc * c.image_score
+        assert c.score == pytest.approx(want + s.fuse_text * c.text_score, abs=1e-5)  # still fused

@@ -50,6 +50,9 @@ class QuerySettings:
     fuse_all: bool = (
         True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
     )
+    # ... up to this many models: a larger library keeps stage 1's tau cut (and its index), and fuses the
+    # shortlist, so a query never ranks every view of a million models
+    fuse_all_max_models: int = 20_000
 
     def with_changes(self, **changes) -> QuerySettings:
         return replace(self, **{k: v for k, v in changes.items() if v is not None})

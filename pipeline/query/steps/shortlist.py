@@ -12,9 +12,10 @@ from pipeline.query.steps.state import RankState, model_mismatch
 def run(state: RankState) -> RankState:
     """Candidates = the stage-1 shortlist in its own order, with their text scores. When the learned encoder
     is fused and ``fuse_all`` is set, every model is a candidate: the text score is a term of the fused
-    score instead of a cut at tau (no fallback)."""
-    r = state.request
-    every = fusing(state) and state.ctx.settings.fuse_all
+    score instead of a cut at tau (no fallback); only up to ``fuse_all_max_models`` models, past which the
+    shortlist is cut at tau as without fusion (stage 1 is then what keeps a query's cost bounded)."""
+    r, s = state.request, state.ctx.settings
+    every = fusing(state) and s.fuse_all and state.ctx.n_meshes <= s.fuse_all_max_models
     try:
         s1 = state.ctx.text_filter.run(
             stage1_vector(state.emb, r.prompt_weight),
