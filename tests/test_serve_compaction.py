@@ -248,3 +248,36 @@ def test_a_query_whose_view_features_vanished_is_answered(store):
         assert r.json()["candidates"][0]["name"] == "red_can"
         assert c.get("/stats").json()["retries"] == 1
     service.close()
+
+
+def test_a_second_vanished_file_is_one_clear_error():
+    """The retry runs once: a query that meets a vanished store file on the newest snapshot too gets
+    StoreUnavailable in one line (both snapshots released, one retry counted)."""
+    import threading
+    import types
+
+    from pipeline.query.errors import StoreUnavailable
+    from pipeline.serve.service import QueryService
+
+    released, calls = [], []
+
+    class Snap:
+        def __init__(self, n):
+            self.retriever = types.SimpleNamespace(store=types.SimpleNamespace(root="/stores/s"), n=n)
+
+        def release(self):
+            released.append(self.retriever.n)
+
+    snaps = iter([Snap(1), Snap(2)])
+    svc = object.__new__(QueryService)
+    svc._stats_lock, svc.counts = threading.Lock(), {"retries": 0}
+    svc.acquire = lambda: next(snaps)
+    svc.reload_after_failure = lambda snap, reason: calls.append(reason)
+
+    def query(retriever):
+        raise FileNotFoundError(2, "No such file", f"/stores/s/views/part-{retriever.n}.parquet")
+
+    with pytest.raises(StoreUnavailable, match="newest snapshot failed too") as exc:
+        svc._attempts(query, ())
+    assert "\n" not in str(exc.value) and "part-2" in str(exc.value)
+    assert released == [1, 2] and svc.counts["retries"] == 1 and len(calls) == 1 and "part-1" in calls[0]

@@ -226,29 +226,25 @@ class QueryService:
         from pipeline.query.errors import StoreUnavailable
         from pipeline.query.recover import one_line, vanished_file
 
-        snap = self.acquire()
-        try:
-            return fn(snap.retriever, *args)
-        except Exception as exc:
-            if not vanished_file(exc, snap.retriever.store.root):
-                raise
-            reason = one_line(exc)
-        finally:
-            snap.release()
-        with self._stats_lock:
-            self.counts["retries"] += 1
-        self.reload_after_failure(snap, reason)
-        snap = self.acquire()
-        try:
-            return fn(snap.retriever, *args)
-        except Exception as exc:
-            if not vanished_file(exc, snap.retriever.store.root):
-                raise
-            raise StoreUnavailable(
-                f"the store changed under this query and its newest snapshot failed too: {one_line(exc)}"
-            ) from None
-        finally:
-            snap.release()
+        for attempt in (1, 2):
+            snap = self.acquire()
+            try:
+                return fn(snap.retriever, *args)
+            except Exception as exc:
+                if not vanished_file(exc, snap.retriever.store.root):
+                    raise
+                if attempt == 2:
+                    raise StoreUnavailable(
+                        "the store changed under this query and its newest snapshot failed too: "
+                        f"{one_line(exc)}"
+                    ) from None
+                reason = one_line(exc)
+            finally:
+                snap.release()
+            with self._stats_lock:
+                self.counts["retries"] += 1
+            self.reload_after_failure(snap, reason)
+        raise AssertionError("unreachable")  # the second attempt returns or raises
 
     def record(self, seconds: float, ok: bool, n: int = 1) -> None:
         with self._stats_lock:
