@@ -25,7 +25,7 @@ from PIL import Image
 
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import ModelLoadError
-from pipeline.models.traced import hidden_states, traced_backbone, traced_path
+from pipeline.models.traced import hidden_states, traced_backbone
 
 POOLINGS = ("cls", "mean", "patch", "cls+patch")
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
@@ -106,12 +106,7 @@ class LearnedViewEncoder:
         if model_id == PACKAGE_ID and self.device.type == "cpu":  # the cached TorchScript copy: fast start
             from pipeline.models.hf_common import quiet_transformers
 
-            def traced():  # tracing runs the eager model: keep its one-off config notices quiet
-                with quiet_transformers():
-                    return traced_backbone(self.directory, self.size, self._eager)
-
-            path = traced_path(self.directory, self.size)
-            self.net = traced_backbone(self.directory, self.size, self._eager) if path.is_file() else traced()
+            self.net = traced_backbone(self.directory, self.size, self._eager, quiet=quiet_transformers)
         else:
             self.net = hidden_states(self._eager()).to(self.device)
         self.dim = 2 * hidden if pooling == "cls+patch" else hidden

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Callable
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -43,9 +44,13 @@ def traced_path(directory: Path, size: int) -> Path:
     return Path(directory) / f"traced-{int(size)}px-torch{version}.pt"
 
 
-def traced_backbone(directory: Path, size: int, load_eager: Callable[[], Any]) -> Any:
+def traced_backbone(
+    directory: Path, size: int, load_eager: Callable[[], Any], quiet: Callable[[], Any] = nullcontext
+) -> Any:
     """The cached TorchScript module of ``directory`` at ``size`` px, traced from ``load_eager()`` (a
-    ``Dinov2Model``) on first use, checked equal to it and saved; the eager module when tracing fails."""
+    ``Dinov2Model``) on first use, checked equal to it and saved; the eager module when tracing fails.
+    ``quiet()`` is entered while tracing (the eager model's one-off notices); loading a cached copy
+    enters nothing."""
     import torch
 
     path = traced_path(directory, size)
@@ -56,7 +61,13 @@ def traced_backbone(directory: Path, size: int, load_eager: Callable[[], Any]) -
                 return torch.jit.load(str(path), map_location="cpu").eval()
         except (RuntimeError, OSError, ValueError, AttributeError):
             pass  # a damaged file: trace again below
-    eager = hidden_states(load_eager())
+    with quiet():
+        return _trace(path, size, hidden_states(load_eager()))
+
+
+def _trace(path: Path, size: int, eager: Any) -> Any:
+    import torch
+
     example = torch.zeros(1, 3, int(size), int(size))
     probe = torch.randn(2, 3, int(size), int(size), generator=torch.Generator().manual_seed(0))
     try:
