@@ -381,11 +381,6 @@ class RayEngine(Engine):
         """Disconnect (Ray ends this driver's actors, the stalled round's with them) and connect again,
         so that the next round is planned on the nodes alive. Only when this run connected to Ray itself;
         a caller's own Ray session is not dropped: the run stops instead, what finished is committed."""
-        import threading
-
-        import ray
-        import ray._private.auto_init_hook as auto_init
-
         left = len([r for r in pending if r["mesh_id"] not in received])
         if not self._started:
             raise RayEngineError(
@@ -393,18 +388,7 @@ class RayEngine(Engine):
                 f"actors wait for room the surviving nodes lack; {left} meshes are not done, the finished "
                 f"ones are committed; run the same command again (Ray logs: {log_dir()})"
             )
-        live = [t for t in self._pumps if t.is_alive()]
-        live += [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")]
-        saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
-        try:
-            try:
-                ray.shutdown()
-            except (Exception, SystemExit):  # noqa: BLE001 - reconnecting below reports a real failure
-                log.debug("ray.shutdown failed", exc_info=True)
-            for t in live:
-                t.join(timeout=PUMP_JOIN_S)
-        finally:
-            auto_init.enable_auto_connect = saved
+        self._stop(True)
         self._started = _start_ray(self.cfg.ray)
 
     def _watch(self, watch: ClusterWatch, items: list[dict], received: set[str]) -> None:
