@@ -64,6 +64,17 @@ def dumped_cues(recs: list[dict]):
     return desc, text, inl, [r["expected"] for r in recs], kind, photo
 
 
+def hit_rates(ranks: np.ndarray, groups: np.ndarray) -> dict:
+    """Top-1 / top-5 of ``ranks`` with 95 % bootstrap intervals resampling ``groups`` (photos)."""
+    t1, t5 = (ranks <= 1).astype(float), (ranks <= 5).astype(float)
+    return {
+        "top1": round(t1.mean(), 3),
+        "top1_ci": [round(v, 3) for v in bootstrap(t1, groups)],
+        "top5": round(t5.mean(), 3),
+        "top5_ci": [round(v, 3) for v in bootstrap(t5, groups)],
+    }
+
+
 def ranks_of(score: np.ndarray, expected: list[list[int]]) -> np.ndarray:
     r = np.empty(len(score), np.int64)
     for i, exp in enumerate(expected):
@@ -181,13 +192,7 @@ def main() -> int:
         sel = kind == kd
         summary = {}
         for name, r in (("held_out", held[sel]), ("chosen_on_all_in_sample", table[final, sel])):
-            t1, t5 = (r <= 1).astype(float), (r <= 5).astype(float)
-            summary[name] = {
-                "top1": round(t1.mean(), 3),
-                "top1_ci": [round(v, 3) for v in bootstrap(t1, photo[sel])],
-                "top5": round(t5.mean(), 3),
-                "top5_ci": [round(v, 3) for v in bootstrap(t5, photo[sel])],
-            }
+            summary[name] = hit_rates(r, photo[sel])
         for ref_name, ref in (
             ("learned_only_224_cls", learned[(sizes[0], 0, "cls")] if sizes else None),
             ("descriptor_only", desc),
@@ -267,13 +272,7 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
         sel = kind == kd
         summary = {}
         for name, r in (("held_out", held[sel]), ("chosen_on_all_in_sample", r_all[sel])):
-            t1, t5 = (r <= 1).astype(float), (r <= 5).astype(float)
-            summary[name] = {
-                "top1": round(t1.mean(), 3),
-                "top1_ci": [round(v, 3) for v in bootstrap(t1, photo[sel])],
-                "top5": round(t5.mean(), 3),
-                "top5_ci": [round(v, 3) for v in bootstrap(t5, photo[sel])],
-            }
+            summary[name] = hit_rates(r, photo[sel])
         summary["per_object_held_out_rank"] = {recs[i]["query_id"]: int(held[i]) for i in np.flatnonzero(sel)}
         out[kd] = summary
     print(json.dumps(out, indent=1))
