@@ -75,16 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    from pipeline.evaluate.datasets import QueryFileError
-    from pipeline.models.registry import ModelLoadError
-    from pipeline.store import StoreError
+    from pipeline.evaluate.cli import run_reporting_errors
 
-    try:
-        return _run(args, argv)
-    except (StoreError, ModelLoadError, QueryFileError, ValueError, FileNotFoundError) as exc:
-        return fail(str(exc))
-    except KeyboardInterrupt:
-        return fail("interrupted", 130)
+    return run_reporting_errors(_run, args, argv)
 
 
 def _absent_labels(text: str) -> set[str]:
