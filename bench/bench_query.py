@@ -108,19 +108,26 @@ def write_store(path: Path, x: np.ndarray, mesh: np.ndarray) -> None:
             schema=schemas.embedding_schema(x.shape[1]),
         )
         store.commit({f"text_embeddings/{slug(enc)}": t}, RUN_ID)
-    fps = {"render": "r", "caption": "c", "embed_text": FP, "embed_image:view_encoder": "v"}
-    models = {"captioner": "attributes:x", "text_encoder": enc, "view_encoder": "descriptor:x"}
-    run = {
-        "run_id": RUN_ID,
-        "profile": "offline",
-        "status": "ok",
-        "config_json": json.dumps({"profile": "offline", "models": models, "fingerprints": fps}),
-    }
-    store.commit({"runs": pa.Table.from_pylist([run], schema=schemas.RUNS)}, RUN_ID)
+    commit_ok_run(store, enc)
     store.close()
 
 
 # ---------------------------------------------------------------------------- references
+def commit_ok_run(store, text_encoder: str, run_id: str = RUN_ID, text_fp: str = FP) -> None:
+    """The ``runs`` row of a finished offline onboarding of a synthetic store, so queries accept it."""
+    from pipeline import schemas
+
+    fps = {"render": "r", "caption": "c", "embed_text": text_fp, "embed_image:view_encoder": "v"}
+    models = {"captioner": "attributes:x", "text_encoder": text_encoder, "view_encoder": "descriptor:x"}
+    run = {
+        "run_id": run_id,
+        "profile": "offline",
+        "status": "ok",
+        "config_json": json.dumps({"profile": "offline", "models": models, "fingerprints": fps}),
+    }
+    store.commit({"runs": pa.Table.from_pylist([run], schema=schemas.RUNS)}, run_id)
+
+
 def numpy_stage1(x: np.ndarray, n_mesh: int, q: np.ndarray, tau: float | None, k: int):
     """The same stage 1 in NumPy: per-model max over its 8 captions, tau or top-k, ties by index."""
     s = (x @ q).reshape(n_mesh, CAPTIONS_PER_MESH).max(axis=1)

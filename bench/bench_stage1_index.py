@@ -41,6 +41,9 @@ import pyarrow as pa
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+from bench_query import commit_ok_run  # noqa: E402
 
 PER_MESH = 8
 RUN_ID = "20250101T000000000000Z-bench0"
@@ -113,7 +116,6 @@ def mesh_rows(m0: int, m1: int, run_id: str = RUN_ID) -> pa.Table:
 
 def write_store(path: Path, rows: int, dim: int, seed: int) -> None:
     """The synthetic store (skipped when ``path`` already holds a complete one)."""
-    from pipeline import schemas
     from pipeline.store import Store, slug
 
     done = path / "bench-complete"
@@ -137,15 +139,7 @@ def write_store(path: Path, rows: int, dim: int, seed: int) -> None:
             },
             RUN_ID,
         )
-    fps = {"render": "r", "caption": "c", "embed_text": FP, "embed_image:view_encoder": "v"}
-    models = {"captioner": "attributes:x", "text_encoder": ENC, "view_encoder": "descriptor:x"}
-    run = {
-        "run_id": RUN_ID,
-        "profile": "offline",
-        "status": "ok",
-        "config_json": json.dumps({"profile": "offline", "models": models, "fingerprints": fps}),
-    }
-    store.commit({"runs": pa.Table.from_pylist([run], schema=schemas.RUNS)}, RUN_ID)
+    commit_ok_run(store, ENC, RUN_ID, FP)
     store.close()
     done.write_text(json.dumps({"rows": rows, "dim": dim, "seed": seed}))
 
