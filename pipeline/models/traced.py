@@ -3,7 +3,7 @@
 Loading a ``Dinov2Model`` imports transformers' modelling stack, about 2.4 s on 2 cores: most of a cold
 ``python -m pipeline.query`` once the offline profile embeds the ROI with the learned encoder. The traced
 module is the same network (the same ATen operations, outputs equal bit for bit, checked when it is
-written and by the tests), loads in about 0.1 s and needs no transformers import. It is written once per
+written and by the tests) and loads without importing transformers. It is written once per
 converted directory, input size and torch version, next to the conversion (``traced-<size>px-torch<v>.pt``,
 atomically); a directory that cannot be written only costs each load the transformers import.
 
