@@ -204,22 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if not args.queries and not args.synthetic:
         return fail("give --queries PATH or --synthetic N")
+    from pipeline.evaluate.cli_errors import run_reporting_errors
+
     return run_reporting_errors(_run, args, argv)
-
-
-def run_reporting_errors(run, args: argparse.Namespace, argv: list[str]) -> int:
-    """``run(args, argv)``, with the evaluation commands' expected failures (store, model, query file,
-    bad value, missing file) as one ``error:`` line and exit 2, and Ctrl-C as exit 130."""
-    from pipeline.evaluate.datasets import QueryFileError
-    from pipeline.models.registry import ModelLoadError
-    from pipeline.store import StoreError
-
-    try:
-        return run(args, argv)
-    except (StoreError, ModelLoadError, QueryFileError, ValueError, FileNotFoundError) as exc:
-        return fail(str(exc))
-    except KeyboardInterrupt:
-        return fail("interrupted", 130)
 
 
 def _run(args: argparse.Namespace, argv: list[str]) -> int:

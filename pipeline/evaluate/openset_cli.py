@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    from pipeline.evaluate.cli import run_reporting_errors
+    from pipeline.evaluate.cli_errors import run_reporting_errors
 
     return run_reporting_errors(_run, args, argv)
 
