@@ -215,8 +215,9 @@ def peak_rss_mb() -> float:
 
 
 # ---------------------------------------------------------------------------- index worker (subprocess)
-def index_worker(store_path: str, qfile: str, out: str, repeats: int) -> None:
-    """Open the index alone and answer every query; write timings, answers and peak RSS."""
+def index_worker(store_path: str, qfile: str, out: str, repeats: int, nprobes: list[int]) -> None:
+    """Open the index alone and answer every query at each of ``nprobes`` (the manifest's first); write
+    timings, answers, the range search's share of each tau query and its survivors, and peak RSS."""
     from pipeline.index.layout import index_dir, read_manifest
     from pipeline.index.snapshot import IndexSnapshot
     from pipeline.store import slug
@@ -230,20 +231,55 @@ def index_worker(store_path: str, qfile: str, out: str, repeats: int) -> None:
     snap = IndexSnapshot(directory, read_manifest(directory), active)
     open_s = time.perf_counter() - t0
     del active
-    answers, times = [], []
-    for q, tau in zip(queries, taus, strict=True):
-        t = None if not np.isfinite(tau) else float(tau)
-        r = snap.run(q, t, 10, "captions")
-        best = []
-        for _ in range(repeats):
-            t1 = time.perf_counter()
-            snap.run(q, t, 10, "captions")
-            best.append((time.perf_counter() - t1) * 1000)
-        times.append(min(best) if best else r.seconds * 1000)
-        answers.append([r.mesh_idx.tolist(), r.scores.tolist(), bool(r.used_fallback)])
-    Path(out).write_text(
-        json.dumps({"times": times, "answers": answers, "rss_mb": peak_rss_mb(), "open_s": open_s})
-    )
+    runs = []
+    for nprobe in [snap.nprobe, *[n for n in nprobes if n != snap.nprobe]]:
+        snap.index.nprobe = nprobe
+        answers, times, range_ms, survivors = [], [], [], []
+        for q, tau in zip(queries, taus, strict=True):
+            t = None if not np.isfinite(tau) else float(tau)
+            r = snap.run(q, t, 10, "captions")
+            best = []
+            for _ in range(repeats):
+                t1 = time.perf_counter()
+                snap.run(q, t, 10, "captions")
+                best.append((time.perf_counter() - t1) * 1000)
+            times.append(min(best) if best else r.seconds * 1000)
+            answers.append([r.mesh_idx.tolist(), r.scores.tolist(), bool(r.used_fallback)])
+            if t is not None:
+                t1 = time.perf_counter()
+                codes = snap._tau_candidates(q, t)
+                range_ms.append((time.perf_counter() - t1) * 1000)
+                survivors.append(len(codes))
+        runs.append(
+            {"nprobe": nprobe, "times": times, "answers": answers, "range_ms": range_ms, "survivors": survivors}
+        )
+    Path(out).write_text(json.dumps({"runs": runs, "rss_mb": peak_rss_mb(), "open_s": open_s}))
+
+
+def quality(answers: list, ref: np.ndarray, taus: np.ndarray) -> dict:
+    """tau-set recall (mean, min), tau precision, top-1 agreement and the largest score error."""
+    n_mesh = ref.shape[0]
+    recalls, precisions, top1, score_err = [], [], [], 0.0
+    for i, (idx, scores, used_fb) in enumerate(answers):
+        s = ref[:, i]
+        if idx:
+            score_err = max(score_err, float(np.max(np.abs(np.asarray(scores) - s[np.asarray(idx)]))))
+        if np.isfinite(taus[i]):
+            truth = set(np.flatnonzero(s >= taus[i]).tolist())
+            got = set(idx) if not used_fb else set()
+            recalls.append(len(got & truth) / len(truth))
+            precisions.append(len(got & truth) / max(len(got), 1) if got else 1.0)
+            best = min(truth, key=lambda m: (-s[m], m))
+        else:
+            best = int(np.lexsort((np.arange(n_mesh), -s))[0])
+        top1.append(bool(idx) and idx[0] == best)
+    return {
+        "tau_recall": float(np.mean(recalls)) if recalls else None,
+        "tau_recall_min": float(np.min(recalls)) if recalls else None,
+        "tau_precision": float(np.mean(precisions)) if precisions else None,
+        "top1_agreement": float(np.mean(top1)),
+        "max_score_error": score_err,
+    }
 
 
 # ---------------------------------------------------------------------------- main
@@ -282,6 +318,16 @@ def main(argv=None) -> int:
     p.add_argument("--workdir", type=Path, default=Path("/tmp/oscar-bench-stage1"))
     p.add_argument("--queries", type=int, default=200)
     p.add_argument("--repeats", type=int, default=3, help="timed repeats per index query (the minimum)")
+    p.add_argument(
+        "--nprobe-sweep",
+        default="",
+        help="comma-separated nprobe values also measured (recall and latency), after the manifest's",
+    )
+    p.add_argument(
+        "--reuse-index",
+        action="store_true",
+        help="keep an index already built for this store (build_s is then the one its manifest recorded)",
+    )
     p.add_argument("--exact-queries", type=int, default=20, help="queries timed on the exact path / NumPy")
     p.add_argument("--exact-max-rows", type=int, default=3_000_000)
     p.add_argument("--threads", type=int, default=2)
@@ -289,7 +335,7 @@ def main(argv=None) -> int:
     p.add_argument("--worker", nargs=3, metavar=("STORE", "QFILE", "OUT"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.worker:
-        index_worker(*a.worker, a.repeats)
+        index_worker(*a.worker, a.repeats, [int(v) for v in a.nprobe_sweep.split(",") if v])
         return 0
     from pipeline.index.sync import sync
     from pipeline.store import Store, slug
@@ -302,12 +348,15 @@ def main(argv=None) -> int:
     print(f"[{rows:,} rows] store ready in {time.perf_counter() - t0:.1f}s", flush=True)
     import shutil
 
-    shutil.rmtree(store_path / "_index", ignore_errors=True)
+    if not a.reuse_index:
+        shutil.rmtree(store_path / "_index", ignore_errors=True)
     with Store.open(store_path) as store:
         t0 = time.perf_counter()
         rep = sync(store, f"text_embeddings/{slug(ENC)}", FP, ENC)
         build_s = time.perf_counter() - t0
     man = rep.manifest
+    if a.reuse_index:
+        build_s = float(man["build_s"])  # what the reused index's own build took
     print(
         f"  index built in {build_s:.1f}s: {man['codec']} nlist {man['nlist']} nprobe {man['nprobe']} eps {man['eps']:.4f}",
         flush=True,
@@ -337,6 +386,8 @@ def main(argv=None) -> int:
             str(rows),
             "--repeats",
             str(a.repeats),
+            "--nprobe-sweep",
+            a.nprobe_sweep,
             "--worker",
             str(store_path),
             str(qfile),
@@ -347,22 +398,21 @@ def main(argv=None) -> int:
     )
     w = json.loads(out.read_text())
 
-    # quality against the exact per-model scores
-    recalls, precisions, top1, score_err = [], [], [], 0.0
-    for i, (idx, scores, used_fb) in enumerate(w["answers"]):
-        s = ref[:, i]
-        if idx:
-            score_err = max(score_err, float(np.max(np.abs(np.asarray(scores) - s[np.asarray(idx)]))))
-        if np.isfinite(taus[i]):
-            truth = set(np.flatnonzero(s >= taus[i]).tolist())
-            got = set(idx) if not used_fb else set()
-            recalls.append(len(got & truth) / len(truth))
-            precisions.append(len(got & truth) / max(len(got), 1) if got else 1.0)
-            best = min(truth, key=lambda m: (-s[m], m))
-        else:
-            best = int(np.lexsort((np.arange(n_mesh), -s))[0])
-        top1.append(bool(idx) and idx[0] == best)
-    times = np.asarray(w["times"])
+    sweep = []
+    for run in w["runs"]:
+        sweep.append(
+            {
+                "nprobe": run["nprobe"],
+                "p50_ms": float(np.percentile(run["times"], 50)),
+                "p99_ms": float(np.percentile(run["times"], 99)),
+                "p50_range_ms": float(np.percentile(run["range_ms"], 50)) if run["range_ms"] else None,
+                "p50_survivors": float(np.percentile(run["survivors"], 50)) if run["survivors"] else None,
+                **quality(run["answers"], ref, taus),
+            }
+        )
+        print(f"  nprobe {run['nprobe']}: " + ", ".join(f"{k} {v}" for k, v in sweep[-1].items()), flush=True)
+    q0 = sweep[0]
+    times = np.asarray(w["runs"][0]["times"])
 
     # exact path and NumPy floor, same run
     n_exact = min(a.exact_queries, len(queries))
@@ -435,11 +485,11 @@ def main(argv=None) -> int:
         "exact_identical_to_numpy": identical,
         "index_vs_numpy": float(np.percentile(times, 50)) / numpy_ms if numpy_ms else None,
         "exact_vs_numpy": exact_ms / numpy_ms if exact_ms and numpy_ms else None,
-        "tau_recall": float(np.mean(recalls)) if recalls else None,
-        "tau_recall_min": float(np.min(recalls)) if recalls else None,
-        "tau_precision": float(np.mean(precisions)) if precisions else None,
-        "top1_agreement": float(np.mean(top1)),
-        "max_score_error": score_err,
+        **{k: q0[k] for k in ("tau_recall", "tau_recall_min", "tau_precision", "top1_agreement")},
+        "max_score_error": q0["max_score_error"],
+        "p50_ms_range_search": q0["p50_range_ms"],
+        "p50_survivors": q0["p50_survivors"],
+        "nprobe_sweep": sweep[1:],
         "rss_mb": w["rss_mb"],
         "index_open_s": w["open_s"],
         "build_s": build_s,

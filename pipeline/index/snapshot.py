@@ -75,6 +75,9 @@ class IndexSnapshot:
         if self.index.ntotal != man["base"]["ntotal"]:
             raise IndexDamaged(f"{directory}: the IVF file holds {self.index.ntotal} rows, not as recorded")
         self.index.nprobe = self.nprobe
+        # one query at a time: faiss's default splits the work by query, so a single query scanned its
+        # lists on one thread; mode 1 splits the probed lists between the threads (same results)
+        faiss.extract_index_ivf(self.index).parallel_mode = 1
         q = getattr(self.index, "quantizer", None)
         if q is not None and hasattr(faiss.downcast_index(q), "hnsw"):
             faiss.downcast_index(q).hnsw.efSearch = max(64, 2 * self.nprobe)
