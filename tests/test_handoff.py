@@ -193,6 +193,42 @@ def test_export_refuses_bad_options_and_a_mesh_without_geometry(store, offline_m
     export_model(bare, tmp_path / "src", units="source")  # the file as it is still exports
 
 
+def test_export_lists_its_files_inside_its_folder(store, offline_models, tmp_path, monkeypatch):
+    """A copied export (no scaling: the HOPE file in mm) names its texture under the export folder as given
+    (relative out dir, or one reached through a symlink), as the service's zip and the CLI's listing need."""
+    from pipeline.query.export import export_model
+
+    path, _ = store
+    with Retriever.open(path, profile="offline", models=offline_models) as r:
+        mesh = _named(r, HOPE_NAME)
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    monkeypatch.chdir(tmp_path)
+    for out in ("rel", tmp_path / "link"):
+        done = export_model(mesh, out, units="mm")
+        names = sorted(f.relative_to(done.folder).as_posix() for f in done.files)
+        assert names == ["hope_000002.ply", "hope_000002.png", "model_info.json"], done.files
+
+
+def test_export_reload_check_refuses_a_wrong_size_or_a_broken_file(store, offline_models, tmp_path):
+    """The reload check behind every export: a file of the wrong size, or one trimesh cannot read, is an
+    error, not a silent bad export."""
+    from pipeline.query.errors import QueryError
+    from pipeline.query.export import check_size, export_model
+
+    path, _ = store
+    with Retriever.open(path, profile="offline", models=offline_models) as r:
+        mesh = _named(r, MUSTARD)
+    done = export_model(mesh, tmp_path, units="m")
+    assert check_size(done.files[0], mesh, 1.0)["extent"] == pytest.approx(MUSTARD_EXTENT_M, rel=1e-4)
+    with pytest.raises(QueryError, match="export not written correctly"):
+        check_size(done.files[0], mesh, 1000.0)  # a metre file where millimetres were due
+    broken = tmp_path / "broken.ply"
+    broken.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9\n")
+    with pytest.raises(QueryError, match="does not load"):
+        check_size(broken, mesh, 1.0)
+
+
 def test_cli_export_in_metres_by_default(store, offline_models, tmp_path, capsys, monkeypatch):
     from query_helpers import render_query_view
 
