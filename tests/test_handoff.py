@@ -373,6 +373,16 @@ def test_service_meshes_sizes_metric_export_and_roi_mask(store, offline_models, 
                 "/query", files=files, data={"prompt": "the bbq sauce bottle", "box": box}
             ).json()
             assert "mask_png_b64" not in plain["query"]["roi"]
+            # the service's batch answers carry the same hand-off per candidate
+            item = {"id": "b", "image_b64": base64.b64encode(buf.getvalue()).decode(), "box": box}
+            batch = client.post(
+                "/query/batch", json={"queries": [{**item, "prompt": "the bbq sauce bottle"}], "top": 2}
+            ).json()["results"][0]
+            for c in batch["candidates"]:
+                want = HOPE_EXTENT_M if c["name"] == HOPE_NAME else MUSTARD_EXTENT_M
+                assert c["extent_m"] == pytest.approx(want, abs=1e-6)
+                assert c["scale_to_metres"] == (0.001 if c["name"] == HOPE_NAME else 1.0)
+                assert len(c["best_view_pose"]) == 4 and c["intrinsics"]["width"] == 160
     finally:
         service.close()
 
