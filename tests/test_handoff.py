@@ -193,6 +193,42 @@ def test_export_refuses_bad_options_and_a_mesh_without_geometry(store, offline_m
     export_model(bare, tmp_path / "src", units="source")  # the file as it is still exports
 
 
+def test_export_lists_its_files_inside_its_folder(store, offline_models, tmp_path, monkeypatch):
+    """A copied export (no scaling: the HOPE file in mm) names its texture under the export folder as given
+    (relative out dir, or one reached through a symlink), as the service's zip and the CLI's listing need."""
+    from pipeline.query.export import export_model
+
+    path, _ = store
+    with Retriever.open(path, profile="offline", models=offline_models) as r:
+        mesh = _named(r, HOPE_NAME)
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    monkeypatch.chdir(tmp_path)
+    for out in ("rel", tmp_path / "link"):
+        done = export_model(mesh, out, units="mm")
+        names = sorted(f.relative_to(done.folder).as_posix() for f in done.files)
+        assert names == ["hope_000002.ply", "hope_000002.png", "model_info.json"], done.files
+
+
+def test_export_reload_check_refuses_a_wrong_size_or_a_broken_file(store, offline_models, tmp_path):
+    """The reload check behind every export: a file of the wrong size, or one trimesh cannot read, is an
+    error, not a silent bad export."""
+    from pipeline.query.errors import QueryError
+    from pipeline.query.export import check_size, export_model
+
+    path, _ = store
+    with Retriever.open(path, profile="offline", models=offline_models) as r:
+        mesh = _named(r, MUSTARD)
+    done = export_model(mesh, tmp_path, units="m")
+    assert check_size(done.files[0], mesh, 1.0)["extent"] == pytest.approx(MUSTARD_EXTENT_M, rel=1e-4)
+    with pytest.raises(QueryError, match="export not written correctly"):
+        check_size(done.files[0], mesh, 1000.0)  # a metre file where millimetres were due
+    broken = tmp_path / "broken.ply"
+    broken.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9\n")
+    with pytest.raises(QueryError, match="does not load"):
+        check_size(broken, mesh, 1.0)
+
+
 def test_cli_export_in_metres_by_default(store, offline_models, tmp_path, capsys, monkeypatch):
     from query_helpers import render_query_view
 
@@ -337,6 +373,16 @@ def test_service_meshes_sizes_metric_export_and_roi_mask(store, offline_models, 
                 "/query", files=files, data={"prompt": "the bbq sauce bottle", "box": box}
             ).json()
             assert "mask_png_b64" not in plain["query"]["roi"]
+            # the service's batch answers carry the same hand-off per candidate
+            item = {"id": "b", "image_b64": base64.b64encode(buf.getvalue()).decode(), "box": box}
+            batch = client.post(
+                "/query/batch", json={"queries": [{**item, "prompt": "the bbq sauce bottle"}], "top": 2}
+            ).json()["results"][0]
+            for c in batch["candidates"]:
+                want = HOPE_EXTENT_M if c["name"] == HOPE_NAME else MUSTARD_EXTENT_M
+                assert c["extent_m"] == pytest.approx(want, abs=1e-6)
+                assert c["scale_to_metres"] == (0.001 if c["name"] == HOPE_NAME else 1.0)
+                assert len(c["best_view_pose"]) == 4 and c["intrinsics"]["width"] == 160
     finally:
         service.close()
 
@@ -407,3 +453,90 @@ def test_handoff_turns_a_batch_into_bop_models_and_pose_priors(store, offline_mo
         handoff_cli.main(["--store", str(path), "--answers", str(tmp_path / "e.jsonl"), "--out", str(bop)])
         == 2
     )
+
+
+# ------------------------------------------------------------------- python -m pipeline.evaluate pose_prior
+def _render_at(mesh_ref, cfg, az: float, el: float, out_dir) -> tuple[str, str]:
+    """A synth-style query image and mask from the camera at (az, el), no roll, no offset."""
+    from PIL import Image
+
+    from pipeline.evaluate.synth import SynthRenderer, SynthView
+    from pipeline.mesh.load import load_mesh
+
+    view = SynthView(az, el, 0.6, 0.0, (0.0, 0.0), 3.0, (1.0, 1.0, 1.0), (0.0, 0.0, 1.0), 0.5, "solid")
+    mesh = load_mesh(mesh_ref.abs_path, mesh_ref.format, max_faces=cfg.max_faces, up="auto")
+    renderer = SynthRenderer(cfg)
+    try:
+        rgb, mask = renderer.render(mesh, view)
+    finally:
+        renderer.close()
+    image, mask_path = out_dir / "at_view.png", out_dir / "at_view_mask.png"
+    Image.fromarray(np.where(mask[:, :, None], rgb, np.uint8(205))).save(image)
+    Image.fromarray(mask.astype(np.uint8) * 255).save(mask_path)
+    return str(image), str(mask_path)
+
+
+def test_pose_prior_evaluation_on_synthetic_queries(store, offline_models, tmp_path, monkeypatch, capsys):
+    """The run behind docs/results.md section 8, end to end on a few synth queries: its true camera is the
+    camera synth rendered from, a query shot from a stored view's camera gets that view back (error ~0),
+    and the table reports the median error and the share within 30 degrees per symmetry class."""
+    import pyrender
+
+    from pipeline.evaluate import pose_prior
+    from pipeline.evaluate.datasets import load_queries, write_queries
+    from pipeline.evaluate.library import read_store_meshes
+    from pipeline.evaluate.records import Query
+    from pipeline.evaluate.synth import SynthConfig, generate
+    from pipeline.evaluate.synth_cli import store_render_config
+    from pipeline.mesh.cameras import view_directions
+
+    path, _ = store
+    cameras = []
+    add = pyrender.Scene.add
+
+    def recording(self, obj, *args, **kwargs):  # the camera pose synth hands pyrender
+        if isinstance(obj, pyrender.PerspectiveCamera):
+            cameras.append(np.asarray(kwargs["pose"], np.float64).copy())
+        return add(self, obj, *args, **kwargs)
+
+    monkeypatch.setattr(pyrender.Scene, "add", recording)
+    onboarding = store_render_config(path)
+    cfg = SynthConfig(per_mesh=2, width=160, height=120, backgrounds=("solid",), onboarding=onboarding)
+    meshes = read_store_meshes(path)
+    queries = generate(meshes, tmp_path / "synth", cfg)
+    assert len(queries) == len(cameras) == 4
+    for q, cam in zip(queries, cameras, strict=True):
+        m = q.meta
+        want = pose_prior.true_camera_gl(m["azimuth_deg"], m["elevation_deg"], m["roll_deg"])
+        assert frames.rotation_angle_deg(want[:3, :3], cam[:3, :3]) < 0.01, (q.query_id, m)
+
+    # one more query, shot from the mustard bottle's stored view 1: the prior can be exact there
+    mustard = next(m for m in meshes if m.name == MUSTARD)
+    az, el, _ = view_directions(onboarding)[1]
+    image, mask = _render_at(mustard, cfg, az, el, tmp_path)
+    at_view = Query(
+        "at-view-1",
+        image,
+        "the mustard bottle",
+        [mustard.mesh_id],
+        mask=mask,
+        meta={"azimuth_deg": az, "elevation_deg": el, "roll_deg": 0.0},
+    )
+    qfile = tmp_path / "q.jsonl"
+    write_queries([*load_queries(tmp_path / "synth" / "queries.jsonl"), at_view], qfile)
+    argv = ["--store", str(path), "--queries", str(qfile), "--top", "2", "--no-progress"]
+    assert pose_prior.main([*argv, "--out", str(tmp_path / "rows.jsonl")]) == 0
+    table = capsys.readouterr().out
+    rows = {r["query_id"]: r for r in map(json.loads, (tmp_path / "rows.jsonl").read_text().splitlines())}
+    assert len(rows) == 5 and all(r["error_deg"] is not None for r in rows.values())  # 2 meshes, top 2
+    with Retriever.open(path, profile="offline", models=offline_models, preload=False) as r:
+        oracle = pose_prior.oracle_rows(r, load_queries(qfile))
+    assert oracle["at-view-1"] < 1e-3
+    assert rows["at-view-1"]["best_view"] == 1 and rows["at-view-1"]["error_deg"] < 0.01
+    for qid, row in rows.items():  # a stored view's error, never below the best stored view's
+        assert row["error_deg"] >= oracle[qid] - 0.01 and row["error_sym_deg"] <= row["error_deg"] + 0.01
+    assert "| median error (deg) | within 30 deg |" in table and "| all | 5 | 5 |" in table
+    classes = {row["symmetry"] for row in rows.values()}
+    assert all(f"| symmetry: {c} |" in table for c in classes)
+    assert pose_prior.main([*argv, "--rows", str(tmp_path / "rows.jsonl")]) == 0  # re-tabulated, same table
+    assert capsys.readouterr().out == table

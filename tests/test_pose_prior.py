@@ -1,5 +1,6 @@
 """The pose-prior evaluation's parts: shape symmetry classes, the synthetic query's true camera, and the
-rotation error modulo a symmetry axis (the run itself: docs/results.md, section 7)."""
+rotation error modulo a symmetry axis (the run itself: docs/results.md, section 8; the evaluation end to
+end on synth queries: tests/test_handoff.py)."""
 
 from __future__ import annotations
 

@@ -15,6 +15,7 @@ a mismatch is an error, not a silent bad export.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -286,8 +287,9 @@ def _copy(src: Path, deps: list[str], dest: Path) -> list[Path]:
         dest.mkdir(parents=True, exist_ok=True)
         copied.append(Path(shutil.copy2(src, dest / src.name)))
         for rel in deps:
-            target = (dest / rel).resolve()
-            if dest.resolve() not in target.parents:  # "../tex.png": keep it inside the export folder
+            # named under ``dest`` as given (not resolved: a relative or symlinked folder stays so)
+            target = Path(os.path.normpath(dest / rel))
+            if dest.resolve() not in target.resolve().parents:  # "../tex.png": keep it inside the folder
                 target = dest / Path(rel).name
             target.parent.mkdir(parents=True, exist_ok=True)
             copied.append(Path(shutil.copy2(base / rel, target)))
