@@ -65,6 +65,42 @@ def test_a_reload_leaves_no_table_behind(store):
     service.close()
 
 
+def test_a_reload_moves_the_stage1_index_and_the_cache_with_the_tables(store, monkeypatch):
+    """Derived data of the query path (the stage-1 index, the embedding cache) moves with the pinned
+    snapshot on a reload: it covers exactly the versions the tables are read at (the new run's, not a run
+    still committing)."""
+    import json
+
+    from pipeline.query import library
+
+    monkeypatch.setattr(library, "CACHE_MIN_ROWS", 1)  # the fake store is tiny: cache it all the same
+    r = Retriever.open(store, models=fake_models(), settings_changes={"stage1": "index"})
+    service = QueryService(r, ServiceLimits(reload_interval=0, workers=2))
+    add_fake_mesh(store, "next", (250, 120, 0), 40, 40, features=True)
+    add_fake_mesh(store, "half", (10, 10, 250), 40, 40, features=True, finish=False)  # still committing
+    assert service.reload_if_changed()
+    r = service.snapshot.retriever
+    with Store.open(store) as s:
+        latest = s.versions()
+    pinned = consistent_versions(store)
+    assert r.versions == r.store.versions() == pinned and pinned["runs"] == latest["runs"]
+    tables = r.tables
+    assert pinned[tables.text_dataset] == latest[tables.text_dataset] - 1  # not the half run's commit
+    assert r.text_filter.engine == "index", r.text_filter.notes
+    assert r.text_filter.snapshot.manifest["delta_version"] == pinned[tables.text_dataset]
+    assert r.text_filter.n_rows == tables.captions.num_rows == 2 * r.n_meshes  # the new mesh's captions too
+    assert "id-half" not in r.mesh_ids and r.n_meshes == 6
+    for kind, dataset in (("caption", tables.text_dataset), ("view", tables.view_dataset)):
+        (manifest,) = (store / "_cache" / "query").glob(f"{kind}-*/manifest.json")
+        covered = {name for seg in json.loads(manifest.read_text())["segments"] for name in seg["sources"]}
+        assert covered == {p.name for p in r.store.parts(dataset)}, kind
+    assert tables.cache_stats["caption"]["read_files"] == 1  # only the new run's file was read
+    new = r.mesh_ids.index("id-next")
+    assert new in tables.captions.column("mesh_idx").to_pylist()
+    assert new in tables.views.column("mesh_idx").to_pylist()
+    service.close()
+
+
 def test_a_vanished_file_reloads_and_retries_once(store):
     service = make_service(store, lease=False)  # unprotected: compaction deletes what it reads
     old = dict(service.snapshot.retriever.versions)
