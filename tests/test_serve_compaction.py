@@ -226,6 +226,21 @@ def wait_for(pred, seconds: float = 30.0) -> bool:
     return pred()
 
 
+def service_files_missing(store) -> list:
+    """Data files of the versions the service's live leases hold that no longer exist."""
+    from pipeline.leases import live_leases
+
+    held = [
+        (d, v)
+        for lease in live_leases(store)
+        if lease.kind == "service"
+        for d, vs in lease.versions.items()
+        for v in vs
+    ]
+    assert held, "the service holds no live lease"
+    return [p for d, v in held for p in needed_files(store, {d: v}) if not p.exists()]
+
+
 def test_soak_runs_removal_and_compaction_while_clients_query(store):
     import uvicorn
 
@@ -238,17 +253,20 @@ def test_soak_runs_removal_and_compaction_while_clients_query(store):
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     assert wait_for(lambda: server.started), "the server did not start"
-    compactions = []
+    compactions, missing = [], []
     try:
         with Clients(f"http://127.0.0.1:{port}", 3, "id-red_can") as clients:
             for step in range(2):
                 add_fake_mesh(store, f"new_{step}", (250, 30 + step, 30), 40, 50, features=True)
                 compactions.append(compact0(store))
+                missing += service_files_missing(store)
                 assert wait_for(lambda s=step: f"new_{s}" in clients.names), f"new_{step} never served"
             remove_fake_mesh(store, "id-green_can")
             compactions.append(compact0(store))
+            missing += service_files_missing(store)
             add_fake_mesh(store, "new_2", (250, 35, 30), 40, 50, features=True)
             compactions.append(compact0(store))
+            missing += service_files_missing(store)
             assert wait_for(lambda: "new_2" in clients.names), "new_2 never served"
             assert wait_for(lambda: service.snapshot.retriever.versions == consistent_versions(store))
             clients.names.clear()
@@ -263,6 +281,8 @@ def test_soak_runs_removal_and_compaction_while_clients_query(store):
     assert clients.bad == [], clients.bad[:5]
     assert "green_can" not in clients.names and {"red_can", "new_0"} <= clients.names
     assert any("kept for live readers: service" in out for out in compactions), compactions
+    # retention 0 removed nothing the live service read: no leased file gone, no answer needed the retry
+    assert missing == [] and service.counts["retries"] == 0, (missing[:3], service.counts)
     assert service.counts["reloads"] >= 4
 
 
