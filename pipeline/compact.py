@@ -2,12 +2,14 @@
 
 Per table: when some rows are superseded (same key as a later row: ``--force`` re-runs, retried meshes)
 the table is rewritten with its latest rows (one Delta overwrite commit); otherwise Delta's ``optimize``
-merges its small files. Once every table is compacted, ``vacuum`` deletes the files that the log marked as removed more
-than ``--retention-hours`` ago (default 7 days), except the files of every table version that a live
-reader lease holds (:mod:`pipeline.leases`: the query service, open Retrievers, the SQL shell), whatever
-the retention; it says which leases held files back, and removes expired leases. Vacuum only deletes
-files the log names as removed, never files it merely does not know, and it runs only on tables whose
-files all check out. Runs under the store's writer lock.
+merges its small files; ``runs`` is committed last (rewritten with its own rows when it had nothing to
+compact), since readers pin every table as of its newest commit. Once every table is compacted,
+``vacuum`` deletes the files that the log marked as removed more than ``--retention-hours`` ago (default
+7 days), except the files of every table version that a live reader lease holds (:mod:`pipeline.leases`:
+the query service, open Retrievers, the SQL shell), whatever the retention; it says which leases held
+files back, and removes expired leases. Vacuum only deletes files the log names as removed, never files
+it merely does not know, and it runs only on tables whose files all check out. Runs under the store's
+writer lock.
 """
 
 from __future__ import annotations
@@ -54,6 +56,20 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
         "rows": rows,
         "dropped": dropped,
     }
+
+
+def seal(store: Store, before: dict[str, int | None], run_id: str) -> bool:
+    """Commit ``runs`` last when compaction committed to other tables but not to it (one file, nothing
+    superseded: a store's first run committed in batches, a run killed before its record): readers pin
+    every table as of the newest ``runs`` commit (:mod:`pipeline.snapshot`), so they would otherwise stay
+    on the versions compaction just tombstoned, and vacuum would delete the files every new reader opens.
+    Rewrites ``runs`` with its own rows (one overwrite commit); returns whether it did."""
+    after = store.versions()
+    if after == before or after.get("runs") is None or after["runs"] != before.get("runs"):
+        return False  # nothing compacted, no runs table, or runs was compacted (last) already
+    store.append("runs", store.read("runs"), run_id, mode="overwrite")
+    store.refresh("runs")
+    return True
 
 
 def vacuum_dataset(
@@ -139,14 +155,18 @@ def main(argv: list[str] | None = None) -> int:
     run_id = new_run_id()
     try:
         with Store.open(args.store, writable=True) as store:
-            # every table first: a reader that leases after the vacuum below read the leases then sees
-            # (and leases) the compacted versions (pipeline.snapshot.open_snapshot)
+            # every table first, runs last: a reader that leases after the vacuum below read the leases
+            # then sees (and leases) the compacted versions (pipeline.snapshot.open_snapshot)
+            before = store.versions()
             done = [(dataset, compact_dataset(store, dataset, run_id)) for dataset in store.all_datasets()]
+            sealed = seal(store, before, run_id)
             for dataset, r in done:
                 line = (
                     f"{dataset}: {r['files_before']} files -> {r['files_after']}, {r['rows']} rows "
                     f"({r['dropped']} superseded dropped)"
                 )
+                if sealed and dataset == "runs":
+                    line += ", rewritten last so that readers see the compacted tables"
                 if not args.no_vacuum:
                     leases = live_leases(store.root)  # read per table: the freshest view of the readers
                     n, held, holders = vacuum_report(

@@ -119,6 +119,41 @@ def test_a_reader_sees_one_run_at_a_time(store):
     r.close()
 
 
+def batched_first_run(path) -> Path:
+    """A store whose only run committed ``meshes`` in two batches (a first onboarding of many meshes):
+    compaction merges its files while ``runs`` (one file, nothing superseded) has nothing to compact."""
+    fake = make_fake_store(path.with_name(path.name + "-src"))
+    with Store.open(fake) as src:
+        tables = {d: src.read(d) for d in src.all_datasets() if src.delta(d) is not None}
+    run_id = tables["runs"].column("run_id")[0].as_py()
+    meshes, runs = tables.pop("meshes"), tables.pop("runs")
+    with Store.open(path, create=True, writable=True) as s:
+        s.commit({"meshes": meshes.slice(0, 2)}, run_id)
+        s.commit({"meshes": meshes.slice(2), **tables}, run_id)
+        s.commit({"runs": runs}, run_id)
+    return path
+
+
+@pytest.mark.parametrize("flags", [["--retention-hours", "0"], ["--no-vacuum"]])
+def test_compaction_moves_readers_on_when_runs_had_nothing_to_compact(tmp_path, capsys, flags):
+    """Readers pin each table as of the newest ``runs`` commit: compaction commits ``runs`` last, or new
+    readers would stay on the versions it tombstoned (and, after the vacuum, find their files gone)."""
+    path = batched_first_run(tmp_path / "store")
+    with Store.open(path) as s:
+        rows = s.read("runs").to_pylist()
+    assert compact.main([str(path), *flags]) == 0
+    out = capsys.readouterr().out
+    assert consistent_versions(path) == latest_versions(path)  # the compacted tables, not the old ones
+    assert "runs: 1 files -> 1" in out and "rewritten last" in out, out
+    with Store.open(path) as s:
+        assert s.read("runs").to_pylist() == rows and len(s.files("meshes")) == 1
+    r = open_retriever(path)
+    assert r.n_meshes == 4 and len(r.candidate_views(["id-red_can"])) == 2 and r.generation == 0
+    r.close()
+    assert compact.main([str(path), *flags]) == 0
+    assert "rewritten" not in capsys.readouterr().out  # nothing compacted: no commit
+
+
 def test_retriever_reloads_in_place_when_a_file_vanished(store, capsys):
     r = open_retriever(store, lease=False)  # nothing protects it: compaction deletes its files
     old = dict(r.versions)

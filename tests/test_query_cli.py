@@ -197,6 +197,25 @@ def test_bad_input_is_one_line_and_non_zero(case, store, photo, fakes, capsys, t
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], err
 
 
+def test_store_unavailable_is_one_line(store, photo, fakes, capsys, monkeypatch):
+    """A store that changed under the query and whose newest snapshot failed too (Retriever raises
+    StoreUnavailable) ends the command with one line, not a traceback."""
+    from pipeline.query import Retriever
+    from pipeline.query.errors import StoreUnavailable
+
+    def gone(self, *a, **kw):
+        raise StoreUnavailable("the store changed under this query and its newest snapshot failed too: x")
+
+    monkeypatch.setattr(Retriever, "query", gone)
+    argv = ["--store", store, "--image", photo / "can.png", "--prompt", "the red can"]
+    argv += ["--mask", photo / "can_mask.png"]
+    code, out, err = run(argv, capsys)
+    assert code == 2 and out == ""
+    assert err.strip().splitlines() == [
+        "error: the store changed under this query and its newest snapshot failed too: x"
+    ], err
+
+
 def test_empty_store(tmp_path, photo, capsys):
     from pipeline.store import Store
 

@@ -65,6 +65,42 @@ def test_a_reload_leaves_no_table_behind(store):
     service.close()
 
 
+def test_a_reload_moves_the_stage1_index_and_the_cache_with_the_tables(store, monkeypatch):
+    """Derived data of the query path (the stage-1 index, the embedding cache) moves with the pinned
+    snapshot on a reload: it covers exactly the versions the tables are read at (the new run's, not a run
+    still committing)."""
+    import json
+
+    from pipeline.query import library
+
+    monkeypatch.setattr(library, "CACHE_MIN_ROWS", 1)  # the fake store is tiny: cache it all the same
+    r = Retriever.open(store, models=fake_models(), settings_changes={"stage1": "index"})
+    service = QueryService(r, ServiceLimits(reload_interval=0, workers=2))
+    add_fake_mesh(store, "next", (250, 120, 0), 40, 40, features=True)
+    add_fake_mesh(store, "half", (10, 10, 250), 40, 40, features=True, finish=False)  # still committing
+    assert service.reload_if_changed()
+    r = service.snapshot.retriever
+    with Store.open(store) as s:
+        latest = s.versions()
+    pinned = consistent_versions(store)
+    assert r.versions == r.store.versions() == pinned and pinned["runs"] == latest["runs"]
+    tables = r.tables
+    assert pinned[tables.text_dataset] == latest[tables.text_dataset] - 1  # not the half run's commit
+    assert r.text_filter.engine == "index", r.text_filter.notes
+    assert r.text_filter.snapshot.manifest["delta_version"] == pinned[tables.text_dataset]
+    assert r.text_filter.n_rows == tables.captions.num_rows == 2 * r.n_meshes  # the new mesh's captions too
+    assert "id-half" not in r.mesh_ids and r.n_meshes == 6
+    for kind, dataset in (("caption", tables.text_dataset), ("view", tables.view_dataset)):
+        (manifest,) = (store / "_cache" / "query").glob(f"{kind}-*/manifest.json")
+        covered = {name for seg in json.loads(manifest.read_text())["segments"] for name in seg["sources"]}
+        assert covered == {p.name for p in r.store.parts(dataset)}, kind
+    assert tables.cache_stats["caption"]["read_files"] == 1  # only the new run's file was read
+    new = r.mesh_ids.index("id-next")
+    assert new in tables.captions.column("mesh_idx").to_pylist()
+    assert new in tables.views.column("mesh_idx").to_pylist()
+    service.close()
+
+
 def test_a_vanished_file_reloads_and_retries_once(store):
     service = make_service(store, lease=False)  # unprotected: compaction deletes what it reads
     old = dict(service.snapshot.retriever.versions)
@@ -190,6 +226,21 @@ def wait_for(pred, seconds: float = 30.0) -> bool:
     return pred()
 
 
+def service_files_missing(store) -> list:
+    """Data files of the versions the service's live leases hold that no longer exist."""
+    from pipeline.leases import live_leases
+
+    held = [
+        (d, v)
+        for lease in live_leases(store)
+        if lease.kind == "service"
+        for d, vs in lease.versions.items()
+        for v in vs
+    ]
+    assert held, "the service holds no live lease"
+    return [p for d, v in held for p in needed_files(store, {d: v}) if not p.exists()]
+
+
 def test_soak_runs_removal_and_compaction_while_clients_query(store):
     import uvicorn
 
@@ -202,17 +253,20 @@ def test_soak_runs_removal_and_compaction_while_clients_query(store):
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     assert wait_for(lambda: server.started), "the server did not start"
-    compactions = []
+    compactions, missing = [], []
     try:
         with Clients(f"http://127.0.0.1:{port}", 3, "id-red_can") as clients:
             for step in range(2):
                 add_fake_mesh(store, f"new_{step}", (250, 30 + step, 30), 40, 50, features=True)
                 compactions.append(compact0(store))
+                missing += service_files_missing(store)
                 assert wait_for(lambda s=step: f"new_{s}" in clients.names), f"new_{step} never served"
             remove_fake_mesh(store, "id-green_can")
             compactions.append(compact0(store))
+            missing += service_files_missing(store)
             add_fake_mesh(store, "new_2", (250, 35, 30), 40, 50, features=True)
             compactions.append(compact0(store))
+            missing += service_files_missing(store)
             assert wait_for(lambda: "new_2" in clients.names), "new_2 never served"
             assert wait_for(lambda: service.snapshot.retriever.versions == consistent_versions(store))
             clients.names.clear()
@@ -227,6 +281,8 @@ def test_soak_runs_removal_and_compaction_while_clients_query(store):
     assert clients.bad == [], clients.bad[:5]
     assert "green_can" not in clients.names and {"red_can", "new_0"} <= clients.names
     assert any("kept for live readers: service" in out for out in compactions), compactions
+    # retention 0 removed nothing the live service read: no leased file gone, no answer needed the retry
+    assert missing == [] and service.counts["retries"] == 0, (missing[:3], service.counts)
     assert service.counts["reloads"] >= 4
 
 

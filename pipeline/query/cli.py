@@ -189,14 +189,14 @@ def main(argv: list[str] | None = None) -> int:
 
     apply_torch_threads(args.torch_threads)  # first: before NumPy's BLAS or torch are loaded
     from pipeline.models.registry import ModelLoadError
-    from pipeline.query.errors import QueryError
+    from pipeline.query.errors import QueryError, StoreUnavailable
     from pipeline.store import StoreError
 
     try:
         if not args.queries:
             _prevalidate(args)
         return _run(args)
-    except (QueryError, StoreError, ModelLoadError) as exc:
+    except (QueryError, StoreError, ModelLoadError, StoreUnavailable) as exc:
         return fail(str(exc))
     except ValueError as exc:  # --model syntax, unknown roles
         return fail(str(exc))
