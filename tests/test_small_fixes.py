@@ -1,5 +1,5 @@
 """Small things a platform team trips on: readable ``fsck --runs``, a lock that names its holder, SQL
-output piped into ``head``."""
+output piped into ``head``, no Ray core-worker line on the console of a normal ``--engine ray`` run."""
 
 from __future__ import annotations
 
@@ -80,3 +80,45 @@ def test_sql_output_into_head_exits_quietly(tmp_path):
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) == 0
     assert err == ""
+
+
+def test_ray_driver_core_worker_connects_quietly(monkeypatch, capfd):
+    """Ray's C++ core worker of the driver reads its log threshold when ``ray.init`` connects; at its
+    default it copies an ERROR line per actor start to the console ("... has constructor arguments in the
+    object store and max_restarts > 0", on a normal run). ``--engine ray`` connects with the threshold at
+    FATAL, holds what the connect itself prints, and leaves the environment as it was. (No Ray is
+    started: the connect is a stand-in; a failed connect still shows its output.)"""
+    ray = pytest.importorskip("ray")
+    import ray._private.worker as ray_worker
+
+    from pipeline.onboard.engines import ray as engine
+    from pipeline.onboard.engines.ray_cluster import CORE_LOG_LEVEL
+    from pipeline.onboard.engines.ray_options import RayOptions
+
+    seen: dict = {}
+
+    def connect(*args, **kwargs):
+        seen["level"] = os.environ.get(CORE_LOG_LEVEL)
+        os.write(2, b"core_worker.cc: the log threshold is read now\n")
+        if seen.get("fail"):
+            raise ConnectionError("no GCS")
+
+    def init(**kwargs):
+        seen["kwargs"] = kwargs
+        ray_worker.connect()  # what ray.init does once the local instance's processes are up
+
+    monkeypatch.setattr(ray_worker, "connect", connect)
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", init)
+    monkeypatch.setenv(CORE_LOG_LEVEL, "debug")
+    capfd.readouterr()
+    assert engine._start_ray(RayOptions()) is True
+    assert seen["level"] == "fatal" and seen["kwargs"]["address"] == "local"
+    assert os.environ[CORE_LOG_LEVEL] == "debug" and ray_worker.connect is connect
+    assert capfd.readouterr().err == ""
+
+    seen["fail"] = True
+    with pytest.raises(engine.RayEngineError, match="cannot start Ray on a local instance"):
+        engine._start_ray(RayOptions())
+    assert "the log threshold is read now" in capfd.readouterr().err
+    assert os.environ[CORE_LOG_LEVEL] == "debug" and ray_worker.connect is connect
