@@ -97,6 +97,10 @@ def test_during_rendering(tmp_path, library, full, offline_models, monkeypatch):
     monkeypatch.undo()
     summary = _resume_equals_full(library, tmp_path / "s", offline_models, full)
     assert (summary.rendered, summary.captioned) == (1, 2)  # only the rest
+    # the summary line adds up: the mesh with stages left is named, not hidden between "added" and
+    # "unchanged" (the mesh never started is added)
+    assert (summary.added, summary.skipped, summary.resumed, summary.n_files) == (1, 2, 1, 4)
+    assert "1 added, 0 removed, 2 unchanged, 1 with stages left, 0 failed" in summary.lines()[0]
 
 
 def test_between_stages(tmp_path, library, full, offline_models, monkeypatch):

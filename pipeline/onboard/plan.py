@@ -35,6 +35,7 @@ class Plan:
     n_vanished: int = 0  # of those, files the library no longer yields (the removal guard counts them)
     restored: int = 0  # new paths whose mesh was onboarded before (a library that came back)
     restored_unchanged: int = 0  # meshes of those with nothing left to do (not counted as unchanged)
+    resumed: int = 0  # meshes already in the store with stages left (an interrupted run, a new stage, --force)
 
     def file_of(self) -> dict[str, FoundFile]:
         """mesh_id -> the first file (in library order) with that content: the one rendered."""
@@ -159,5 +160,6 @@ def make_plan(store: Store, library: str, run: RunSpec) -> Plan:
         {m for m in ids if m in bad_render or any(m in failed.get(fp, ()) for fp in fps)} - busy
     )
     plan.restored_unchanged = len(back - busy)
+    plan.resumed = len(busy - set(new_paths))
     plan.skipped = len(set(ids) - busy) - plan.restored_unchanged
     return plan

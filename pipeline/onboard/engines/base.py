@@ -49,6 +49,7 @@ class RunSummary:
     total_seconds: float = 0.0
     status: str = "ok"
     restored: int = 0  # of ``added``: files whose mesh was onboarded before (not rendered again)
+    resumed: int = 0  # meshes already in the store with stages left (shown only when some are)
     removal_guard: dict = field(default_factory=dict)  # the guard's record (pipeline.onboard.guard)
     guard_line: str = ""
     warnings: list[str] = field(default_factory=list)
@@ -64,7 +65,9 @@ class RunSummary:
         back = f" ({self.restored} onboarded before, not rendered again)" if self.restored else ""
         lines = [
             f"run {self.run_id}: {self.n_files} files, {self.added} added{back}, {self.removed} removed, "
-            f"{self.skipped} unchanged, {self.failed} failed"
+            f"{self.skipped} unchanged, "
+            + (f"{self.resumed} with stages left, " if self.resumed else "")
+            + f"{self.failed} failed"
             + (
                 f" ({self.failed_before} failed before, skipped; --retry-failed retries them)"
                 if self.failed_before
@@ -158,6 +161,7 @@ class Engine:
         if guard.tripped:  # nothing is committed: the run's record counts no change
             raise RemovalGuardError(guard, plan.library_root, summary)
         summary.skipped = plan.skipped
+        summary.resumed = plan.resumed
         summary.failed_before = plan.failed_before
         summary.removed = len(plan.removed_rows)
         summary.added = sum(len(v) for v in plan.new_paths.values())
