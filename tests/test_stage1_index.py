@@ -296,3 +296,61 @@ def test_retriever_result_carries_the_fallback_note(store_path, monkeypatch):
             out = r.rank(emb, mode=mode, threshold=0.5).to_dict()
             assert out["notes"] and "missing" in out["notes"][0] and "exact path" in out["notes"][0]
             assert out["candidates"]
+
+
+def _clustered(rng, n_models: int, dim: int, per: int = 8):
+    """Caption-like unit rows: topics, models around them, ``per`` captions around each model."""
+    topics = rng.standard_normal((max(1, n_models // 20), dim))
+    model = topics[rng.integers(len(topics), size=n_models)] + 0.2 * rng.standard_normal((n_models, dim))
+    x = np.repeat(model, per, 0) + 0.1 * rng.standard_normal((n_models * per, dim))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32), np.repeat(np.arange(n_models), per)
+
+
+def test_nprobe_is_calibrated_to_the_recall_target():
+    """The build probes as many lists as its own sample queries need for the tau-set recall target: the
+    steps below the chosen one miss it, and held-out queries see the same recall."""
+    import faiss
+
+    from pipeline.index import build as b
+
+    rng = np.random.default_rng(0)
+    x, mesh_code = _clustered(rng, 4000, 32)
+    index = faiss.index_factory(32, "IVF40,SQ8", faiss.METRIC_INNER_PRODUCT)
+    index.train(x)
+    index.add(x)
+    live = np.arange(len(x))
+    eps, _ = b.measure_eps(index, x, live, rng)
+    nprobe, rec = b.calibrate_nprobe(index, x, mesh_code, live, rng, eps, 4)
+    recall = {int(k): v for k, v in rec["recall"].items()}
+    assert rec["queries"] >= 60 and rec["target"] == b.RECALL_TARGET
+    assert nprobe > 4 and recall[nprobe] >= b.RECALL_TARGET  # the formula's 4 lists were not enough
+    assert all(v < b.RECALL_TARGET for k, v in recall.items() if k < nprobe)
+    assert index.nprobe == 1  # the index is left as it was
+    # held out: fresh queries, recall measured the same way at the chosen and at the formula's nprobe
+    held = np.random.default_rng(1)
+    q = b.sample_queries(x, live, held, 200)
+    exact = (x @ q.T).reshape(4000, 8, -1).max(1)
+
+    def recall_at(p):
+        index.nprobe, found = p, []
+        for i in range(len(q)):
+            order = np.argsort(-exact[:, i])
+            n = int(held.integers(1, 101))
+            tau = (exact[order[n - 1], i] + exact[order[n], i]) / 2
+            _, _, labels = index.range_search(q[i : i + 1], float(tau - eps))
+            found.append(len(set(mesh_code[labels]) & set(order[:n])) / n)
+        return float(np.mean(found))
+
+    assert recall_at(nprobe) >= 0.99 > recall_at(4)
+
+
+def test_calibration_leaves_tiny_indexes_alone():
+    import faiss
+
+    from pipeline.index import build as b
+
+    x, mesh_code = _clustered(np.random.default_rng(0), 2, 8)
+    index = faiss.index_factory(8, "IVF1,SQ8", faiss.METRIC_INNER_PRODUCT)
+    index.train(x)
+    index.add(x)
+    assert b.calibrate_nprobe(index, x, mesh_code, np.arange(len(x)), np.random.default_rng(0), 0.01, 1)[0] == 1

@@ -34,6 +34,13 @@ SQ4_ROWS = 4_000_000
 NLIST_PER_SQRT = 4
 NPROBE_FRACTION = 0.015
 MIN_NPROBE = 16
+#: nprobe is calibrated at build (:func:`calibrate_nprobe`): the smallest step of NPROBE_LADDER x the
+#: formula's nprobe whose range search finds RECALL_TARGET of the tau-sets of CALIB_QUERIES sample queries
+#: (perturbed stored captions, tau-sets of 1..100 models). A fixed share of the lists found 99.4 % at 2M
+#: rows but 96.7 % at 10M (docs/performance.md, "10M rows"): how much to probe depends on the data.
+RECALL_TARGET = 0.995
+CALIB_QUERIES = 64
+NPROBE_LADDER = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
 #: eps = EPS_MARGIN x the largest coded-vs-exact inner-product error on the build sample
 EPS_MARGIN = 1.5
 #: k-means on TRAIN_PER_LIST sampled rows per list, KMEANS_ITERS iterations (faiss's default is 25:
@@ -250,6 +257,9 @@ def write_base(
         index.add_with_ids(np.ascontiguousarray(vecs[ids]), ids.astype(np.int64))
     if train:
         out["eps"], out["eps_max_seen"] = measure_eps(index, vecs, live, rng)
+        out["nprobe"], out["nprobe_calibration"] = calibrate_nprobe(
+            index, vecs, mesh_code, live, rng, out["eps"], int(man["nprobe"])
+        )
         out["drift"] = {
             "train_residual": coarse_residual(index, vecs, live, rng),
             "rows_at_train": int(len(live)),
@@ -336,6 +346,85 @@ def measure_eps(
     dec = index.sa_decode(index.sa_encode(x))
     err = float(np.max(np.abs(q @ x.T - q @ dec.T)))
     return EPS_MARGIN * err + 1e-4, err
+
+
+def sample_queries(vecs, live: np.ndarray, rng, n: int) -> np.ndarray:
+    """``n`` unit queries near stored rows (a sampled caption plus noise, as a paraphrase would be)."""
+    rows = np.sort(rng.choice(live, min(len(live), n), replace=False))
+    q = np.ascontiguousarray(vecs[rows], np.float32)
+    q = q + 0.3 * rng.standard_normal(q.shape).astype(np.float32) / math.sqrt(q.shape[1])
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def top_model_scores(vecs, mesh_code: np.ndarray, live: np.ndarray, q: np.ndarray, k_models: int):
+    """Per query, the exact scores of its best ``k_models`` models (max over captions), best first.
+
+    One streamed pass over the live rows; only each query's best ``8 x k_models + 64`` caption rows are
+    kept (a model among the best ``k`` has its best caption among them unless some model has more than 8
+    captions above it, so the count is doubled for that)."""
+    keep = 2 * (8 * k_models + 64)
+    best_s = np.full((len(q), 0), -np.inf, np.float32)
+    best_m = np.zeros((len(q), 0), np.int64)
+    for i in range(0, len(live), READ_BATCH * 4):
+        rows = live[i : i + READ_BATCH * 4]
+        s = (np.ascontiguousarray(vecs[rows]) @ q.T).T  # (Q, rows)
+        m = np.broadcast_to(mesh_code[rows], s.shape)
+        s, m = np.concatenate([best_s, s], 1), np.concatenate([best_m, m], 1)
+        if s.shape[1] > keep:
+            part = np.argpartition(-s, keep - 1, axis=1)[:, :keep]
+            s, m = np.take_along_axis(s, part, 1), np.take_along_axis(m, part, 1)
+        best_s, best_m = s, m
+    out = []
+    for s, m in zip(best_s, best_m, strict=True):
+        order = np.lexsort((m, -s))
+        m, s = m[order], s[order]
+        first = np.unique(m, return_index=True)[1]
+        first.sort()
+        out.append((m[first][:k_models], s[first][:k_models]))
+    return out
+
+
+def calibrate_nprobe(
+    index, vecs, mesh_code: np.ndarray, live: np.ndarray, rng, eps: float, nprobe: int
+) -> tuple[int, dict]:
+    """(nprobe, record): the smallest ladder step over ``nprobe`` whose range search at ``tau - eps``
+    reaches a caption of RECALL_TARGET of the sample queries' tau-set models (mean over queries; each tau
+    halfway between the n-th and (n+1)-th best model, n uniform in 1..100, as the benchmark draws them)."""
+    import faiss
+
+    nlist = faiss.extract_index_ivf(index).nlist
+    steps = sorted({min(nlist, max(1, int(math.ceil(nprobe * f)))) for f in NPROBE_LADDER})
+    record = {"target": RECALL_TARGET, "queries": 0, "recall": {}}
+    n_models = len(np.unique(mesh_code[live])) if len(live) else 0
+    if n_models < 3 or nlist <= 1:
+        return nprobe, record
+    q = sample_queries(vecs, live, rng, CALIB_QUERIES)
+    kmax = min(100, n_models - 1)
+    tops = top_model_scores(vecs, mesh_code, live, q, kmax + 1)
+    cases = []
+    for qi, (m, s) in enumerate(tops):
+        if len(m) < 2:
+            continue
+        n = int(rng.integers(1, min(kmax, len(m) - 1) + 1))
+        cases.append((qi, float((s[n - 1] + s[n]) / 2), set(m[:n].tolist())))
+    record["queries"] = len(cases)
+    chosen, old = steps[-1], index.nprobe
+    try:
+        for step in steps:
+            index.nprobe = step
+            found = []
+            for qi, tau, truth in cases:
+                _, _, labels = index.range_search(q[qi : qi + 1], tau - eps)
+                got = set(mesh_code[labels].tolist())
+                found.append(len(got & truth) / len(truth))
+            rec = float(np.mean(found)) if found else 1.0
+            record["recall"][str(step)] = round(rec, 5)
+            if rec >= RECALL_TARGET:
+                chosen = step
+                break
+    finally:
+        index.nprobe = old
+    return chosen, record
 
 
 def coarse_residual(index, vecs, rows: np.ndarray, rng=None, n: int = 8192) -> float:
