@@ -339,21 +339,22 @@ def measure_eps(
     rows = np.sort(rng.choice(live, min(len(live), n_rows), replace=False))
     x = np.ascontiguousarray(vecs[rows])
     qsel = rng.choice(len(rows), min(len(rows), n_queries), replace=False)
-    q = x[qsel] + 0.3 * rng.standard_normal((len(qsel), x.shape[1])).astype(np.float32) / math.sqrt(
-        x.shape[1]
-    )
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q = paraphrase(x[qsel], rng)
     dec = index.sa_decode(index.sa_encode(x))
     err = float(np.max(np.abs(q @ x.T - q @ dec.T)))
     return EPS_MARGIN * err + 1e-4, err
 
 
-def sample_queries(vecs, live: np.ndarray, rng, n: int) -> np.ndarray:
-    """``n`` unit queries near stored rows (a sampled caption plus noise, as a paraphrase would be)."""
-    rows = np.sort(rng.choice(live, min(len(live), n), replace=False))
-    q = np.ascontiguousarray(vecs[rows], np.float32)
-    q = q + 0.3 * rng.standard_normal(q.shape).astype(np.float32) / math.sqrt(q.shape[1])
+def paraphrase(x: np.ndarray, rng) -> np.ndarray:
+    """Unit queries near the rows ``x``: each row plus noise, as a paraphrase of its caption would be."""
+    q = x + 0.3 * rng.standard_normal(x.shape).astype(np.float32) / math.sqrt(x.shape[1])
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def sample_queries(vecs, live: np.ndarray, rng, n: int) -> np.ndarray:
+    """``n`` unit queries near sampled live rows (:func:`paraphrase`)."""
+    rows = np.sort(rng.choice(live, min(len(live), n), replace=False))
+    return paraphrase(np.ascontiguousarray(vecs[rows], np.float32), rng)
 
 
 def top_model_scores(vecs, mesh_code: np.ndarray, live: np.ndarray, q: np.ndarray, k_models: int):
@@ -374,13 +375,13 @@ def top_model_scores(vecs, mesh_code: np.ndarray, live: np.ndarray, q: np.ndarra
             part = np.argpartition(-s, keep - 1, axis=1)[:, :keep]
             s, m = np.take_along_axis(s, part, 1), np.take_along_axis(m, part, 1)
         best_s, best_m = s, m
+    from pipeline.index.snapshot import per_mesh_max
+
     out = []
     for s, m in zip(best_s, best_m, strict=True):
-        order = np.lexsort((m, -s))
-        m, s = m[order], s[order]
-        first = np.unique(m, return_index=True)[1]
-        first.sort()
-        out.append((m[first][:k_models], s[first][:k_models]))
+        m, s = per_mesh_max(m, s)
+        order = np.lexsort((m, -s))[:k_models]
+        out.append((m[order], s[order]))
     return out
 
 

@@ -41,6 +41,16 @@ def _ranges(starts: np.ndarray, ends: np.ndarray) -> np.ndarray:
     return np.arange(total, dtype=np.int64) + offs
 
 
+def per_mesh_max(mesh_idx: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct mesh_idx, max score), any order."""
+    if not len(mesh_idx):
+        return np.zeros(0, np.int32), np.zeros(0, np.float32)
+    order = np.lexsort((-scores, mesh_idx))
+    m, s = mesh_idx[order], scores[order]
+    first = np.concatenate(([True], m[1:] != m[:-1]))
+    return m[first].astype(np.int32), s[first]
+
+
 class IndexSnapshot:
     """The index as its manifest described it when opened, numbered against ``active_ids`` (sorted mesh
     ids of the active meshes: ``mesh_idx`` is the position in it, as on the exact path)."""
@@ -136,16 +146,6 @@ class IndexSnapshot:
         scores = self.read_rows(slots) @ q if len(slots) else np.zeros(0, np.float32)
         return slots, self.code_to_idx[self.slot_mesh[slots]], scores.astype(np.float32)
 
-    @staticmethod
-    def _per_mesh(mesh_idx: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(distinct mesh_idx, max score), any order."""
-        if not len(mesh_idx):
-            return np.zeros(0, np.int32), np.zeros(0, np.float32)
-        order = np.lexsort((-scores, mesh_idx))
-        m, s = mesh_idx[order], scores[order]
-        first = np.concatenate(([True], m[1:] != m[:-1]))
-        return m[first].astype(np.int32), s[first]
-
     def _delta_scores(self, q: np.ndarray) -> np.ndarray:
         s = self.delta_vecs @ q if len(self.delta_vecs) else np.zeros(0, np.float32)
         return np.where(self.delta_alive, s, -np.inf)
@@ -190,7 +190,7 @@ class IndexSnapshot:
         k = int(fallback_k)
         if threshold is not None:
             _, m_idx, s = self._rescore(q, self._tau_candidates(q, threshold))
-            m, best = self._per_mesh(m_idx, s)
+            m, best = per_mesh_max(m_idx, s)
             keep = best >= np.float32(threshold)
             if keep.any():
                 m, best = m[keep], best[keep]
@@ -198,7 +198,7 @@ class IndexSnapshot:
                 return Stage1Result(m[order], best[order], False, time.perf_counter() - t0)
         # fallback: enough caption rows that the top-k models (and their top-k captions) are among them
         _, m_idx, s = self._rescore(q, self._knn_candidates(q, 8 * k + 64))
-        m, best = self._per_mesh(m_idx, s)
+        m, best = per_mesh_max(m_idx, s)
         order = np.lexsort((m, -best))[:k]
         m, best = m[order], best[order]
         if fallback_unit == "captions" and len(m):
