@@ -37,6 +37,10 @@ DEFAULT_PROMPT_STYLE = "attributes"
 
 #: roles a run can drop with ``--model ROLE=none``
 OPTIONAL_ROLES = ("learned_encoder",)
+#: model options that do not change what onboarding stores (the query ROI's framing; the arithmetic
+#: precision, which moves embeddings by about 1e-4 in cosine): left out of the embedding steps'
+#: fingerprints, so changing one needs no re-onboarding
+UNFINGERPRINTED_OPTIONS = ("roi_margin", "precision")
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,9 @@ SAMPLE_LIBRARY = REPO / "data" / "sample_library"
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# float32 for the learned encoder on every machine, so that recorded scores (tests/golden) do not depend on
+# whether the CPU has AMX; the bfloat16 path is tested by name (tests/test_focus_weights.py)
+os.environ.setdefault("OSCAR_PRECISION", "fp32")
 
 
 def need_shared(path: Path = YCB) -> Path:

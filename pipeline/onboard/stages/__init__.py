@@ -91,7 +91,12 @@ def caption_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) 
 
 
 def encoder_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
-    return fingerprint({"model": spec.key(), "opts": spec.options, "in": upstream})
+    """The fingerprint of an embedding step: the model, its options (less those that do not change what
+    is stored, :data:`pipeline.profiles.UNFINGERPRINTED_OPTIONS`) and the upstream step's fingerprint."""
+    from pipeline.profiles import UNFINGERPRINTED_OPTIONS
+
+    opts = {k: v for k, v in spec.options.items() if k not in UNFINGERPRINTED_OPTIONS}
+    return fingerprint({"model": spec.key(), "opts": opts, "in": upstream})
 
 
 def features_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
