@@ -85,7 +85,9 @@ def test_local_feature_verification(ycb_store, queries, offline_models):
         s = r.settings
         wl, wd = 1 - s.fuse_desc - s.fuse_text, s.fuse_desc
         base = (wl * best.learned_score + wd * best.image_score) / (wl + wd)
-        assert best.score == pytest.approx(base + r.verifier.cfg.bonus(best.inliers), abs=1e-5)
+        # (its weight is fuse_verify_weight when fusing, verify_weight without the learned encoder)
+        bonus = r.verifier.cfg.bonus(best.inliers, s.fuse_verify_weight)
+        assert bonus > 0 and best.score == pytest.approx(base + bonus, abs=1e-5)
         assert "verify_ms" in on.timings and emb.inliers  # cached on the embedding
         assert max(c.inliers for c in on.candidates[1:]) < best.inliers
         off = r.rank(emb, "image-only", top=len(YCB_NAMES), verify=False)
@@ -96,6 +98,12 @@ def test_local_feature_verification(ycb_store, queries, offline_models):
     ) as r:
         emb = r.embed(r.make_roi(str(photo), "the sugar box", mask=str(mask)), "the sugar box")
         assert emb.local is None
+    with Retriever.open(
+        store, profile="offline", models=offline_models, settings_changes={"fuse_verify_weight": 0.0}
+    ) as r:
+        emb = r.embed(r.make_roi(str(photo), "the sugar box", mask=str(mask)), "the sugar box")
+        best = r.rank(emb, "image-only", top=3).candidates[0]
+        assert best.inliers >= 15 and best.score == pytest.approx(base, abs=1e-5)  # no bonus at weight 0
 
 
 def test_cli_end_to_end_with_explain_and_export(

@@ -60,9 +60,11 @@ class VerifyConfig:
     inlier_cap: int = 20  # inliers at or above this add the full weight
     weight: float = 0.3  # fused = global score + weight * clip((inliers - floor) / (cap - floor), 0, 1)
 
-    def bonus(self, inliers):
-        """The fused score's local-feature term for an inlier count (scalar or array)."""
+    def bonus(self, inliers, weight: float | None = None):
+        """The fused score's local-feature term for an inlier count (scalar or array); ``weight`` replaces
+        :attr:`weight` (the fusion with the learned encoder has its own)."""
         import numpy as np
 
         span = max(self.inlier_cap - self.inlier_floor, 1)
-        return self.weight * np.clip((np.asarray(inliers, dtype=np.float32) - self.inlier_floor) / span, 0, 1)
+        w = self.weight if weight is None else float(weight)
+        return w * np.clip((np.asarray(inliers, dtype=np.float32) - self.inlier_floor) / span, 0, 1)

@@ -47,6 +47,7 @@ class QuerySettings:
     # docs/results.md "Learned view encoder"); the learned cosine gets 1 - desc - text = 0.27
     fuse_desc: float = 0.22  # weight of the descriptor cosine
     fuse_text: float = 0.51  # weight of the stage-1 text score
+    fuse_verify_weight: float = 0.3  # weight of the inlier term when fusing (verify_weight without fusion)
     fuse_all: bool = (
         True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
     )

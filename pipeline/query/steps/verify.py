@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.query.fusion import fusing
 from pipeline.query.steps.state import RankState
 
 
 def run(state: RankState, *, base: str = "image") -> RankState:
     """Verify and re-rank when the request asks for it and the embedding carries the ROI's keypoints; the
-    inlier bonus is added to the ``base`` channel (the fused score when the learned encoder takes part)."""
+    inlier bonus is added to the ``base`` channel (the fused score when the learned encoder takes part, with
+    the weight ``fuse_verify_weight`` instead of ``verify_weight``)."""
     emb, ctx, order = state.emb, state.ctx, state.order
     inl = np.full(len(state.mesh_idx), -1, np.int64)
     fused = np.asarray(state.scores[base], np.float32).copy()
@@ -26,7 +28,8 @@ def run(state: RankState, *, base: str = "image") -> RankState:
     state.timings["verify_ms"] = seconds * 1000
     counts = np.array([cache[int(state.mesh_idx[j])][0] for j in top], np.int64)
     inl[top] = counts
-    fused[top] += ctx.verifier.cfg.bonus(counts)
+    weight = ctx.settings.fuse_verify_weight if fusing(state) else None
+    fused[top] += ctx.verifier.cfg.bonus(counts, weight)
     rest = np.full(len(order), len(order), np.int64)
     rest[order] = np.arange(len(order))  # the previous order breaks ties of the fused score
     state.order = np.lexsort((rest, -fused))
