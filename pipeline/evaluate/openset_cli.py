@@ -101,6 +101,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     from pipeline.evaluate.openset_split import mesh_ids_with_labels, without_meshes
     from pipeline.fingerprint import fingerprint
     from pipeline.query import Retriever
+    from pipeline.query.accept import model_identities
 
     rois = tuple(r.strip() for r in args.rois.split(",") if r.strip())
     if not rois or set(rois) - {"mask", "box"}:
@@ -137,7 +138,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         )
         _save_embeddings(args.embeddings, cache_key, embeddings)
         default = _default_variant(full)
-        models = {k: v for k, v in full.tables.onboarding.models.items()}
+        models = model_identities(full.profile, full.tables.onboarding)
         profile = full.profile.name
     command = "python -m pipeline.evaluate openset " + " ".join(shlex.quote(a) for a in argv)
     _write_examples(examples, out / "examples.jsonl")  # the answers first: fitting takes a while
@@ -207,7 +208,7 @@ def _fit_all(examples, default, args, profile, models, command, n_dropped):
         select_features,
         usable_features,
     )
-    from pipeline.query.accept import CALIBRATED_ROLES, Calibration
+    from pipeline.query.accept import Calibration
 
     by_variant: dict[str, list] = {}
     for e in examples:
@@ -250,7 +251,7 @@ def _fit_all(examples, default, args, profile, models, command, n_dropped):
         "cv": "leave one object out",
         "out_of_fold": {k: v["out_of_fold"] for k, v in variants.items()},
     }
-    cal = Calibration(profile, {r: models.get(r) for r in CALIBRATED_ROLES}, fitted, fit_info)
+    cal = Calibration(profile, models, fitted, fit_info)
     summary = {"default_variant": default, "variants": variants, "fit": fit_info}
     return summary, cal
 

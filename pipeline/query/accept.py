@@ -39,7 +39,29 @@ COHORT_SIZE = 1024
 MARGIN_CAP = 0.25
 #: the roles whose model identity decides whether a calibration applies
 CALIBRATED_ROLES = ("captioner", "text_encoder", "view_encoder", "clip_image_encoder")
+#: options of the learned view encoder that do not move its scores (left out of its identity)
+UNSCORED_OPTIONS = ("precision", "batch_size", "device")
 FORMAT = 1
+
+
+def learned_identity(spec) -> str:
+    """The learned view encoder as a calibration sees it: its id and the options that move its cosines
+    (input size, pooling, flip, ROI framing)."""
+    opts = {k: v for k, v in sorted(spec.options.items()) if k not in UNSCORED_OPTIONS}
+    if not opts.get("roi_margin", 1):  # no framing, as when the option is not given
+        del opts["roi_margin"]
+    return f"{spec.key()} {json.dumps(opts, sort_keys=True)}"
+
+
+def model_identities(profile, onboarding) -> dict[str, str | None]:
+    """What a calibration is tied to: the store's models of :data:`CALIBRATED_ROLES`, and the learned view
+    encoder as the query fuses it (``None`` when it does not: the role dropped, or a store without its
+    embeddings), since the fused score's distribution depends on it."""
+    out = {r: onboarding.models.get(r) for r in CALIBRATED_ROLES}
+    spec = profile.learned_encoder
+    fused = spec is not None and bool(onboarding.fingerprints.get("embed_image:learned_encoder"))
+    out["learned_encoder"] = learned_identity(spec) if fused else None
+    return out
 
 
 class CalibrationError(ValueError):
@@ -158,8 +180,8 @@ class Calibration:
 
     def mismatch(self, models: dict[str, str | None]) -> str | None:
         """Why this calibration does not apply to a store onboarded with ``models`` (``None``: it applies)."""
-        for role in CALIBRATED_ROLES:
-            if role in self.models and self.models.get(role) != models.get(role):
+        for role in (*CALIBRATED_ROLES, "learned_encoder"):  # a calibration older than the learned
+            if role in self.models and self.models.get(role) != models.get(role):  # encoder has no entry
                 return (
                     f"acceptance calibrated for {role} {self.models.get(role)}, the store uses "
                     f"{models.get(role)}: re-calibrate with `python -m pipeline.evaluate openset` (docs/query.md)"

@@ -48,10 +48,12 @@ def ranking_context(store, profile, tables, settings, *, device, threads) -> Ran
 def calibration_for(profile, settings, onboarding):
     """The profile's acceptance calibration (:mod:`pipeline.query.accept`) and why it does not fit this
     store (``None`` when it does)."""
-    from pipeline.query.accept import CalibrationError, load_calibration
+    from pipeline.query.accept import CalibrationError, load_calibration, model_identities
 
     try:
         calibration = load_calibration(profile.name, settings.accept_model)
     except CalibrationError as exc:
         raise QueryError(str(exc)) from None
-    return calibration, None if calibration is None else calibration.mismatch(onboarding.models)
+    if calibration is None:
+        return None, None
+    return calibration, calibration.mismatch(model_identities(profile, onboarding))
