@@ -40,7 +40,7 @@ def query_records(args, out: Path) -> list[dict]:
         args.store, profile="offline", settings_changes=changes, model_overrides={"learned_encoder": "none"}
     ) as r:
         all_idx = list(range(r.n_meshes))
-        for kind in ("mask", "box"):
+        for kind in args.kinds.split(","):
             (out / f"roi_{kind}").mkdir(parents=True, exist_ok=True)
             for q in queries:
                 qq = q if kind == "mask" else drop_mask(q)
@@ -115,6 +115,7 @@ def main() -> int:
     p.add_argument("--queries", required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--sizes", default="224")
+    p.add_argument("--kinds", default="mask,box", help="ROI kinds: mask (as given), box (mask dropped)")
     p.add_argument("--flips", default="0,1", help="0: as is, 1: mirrored (both by default)")
     p.add_argument(
         "--roi-margins",

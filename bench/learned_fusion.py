@@ -133,6 +133,20 @@ def main() -> int:
         help="spread (default): the three cosines weighted by 1 / their mean spread over the library, "
         "measured on the training folds without labels (no fitted weight); grid: weights searched too",
     )
+    p.add_argument(
+        "--guard",
+        action="append",
+        default=[],
+        help="(repeatable) another feature dump (e.g. a synthetic query set, bench/learned_features.py --kinds mask) "
+        "that a setting must not do worse on than --guard-ref: settings whose top-1 or top-5 there falls "
+        "below the reference's are left out of the cross-validation (spread weights only)",
+    )
+    p.add_argument(
+        "--guard-ref",
+        default="224,0,cls,0,0.3",
+        help="the reference setting size,flip,pooling,margin%%,w_verify (default: the setting shipped before "
+        "the guard existed)",
+    )
     p.add_argument("--json")
     args = p.parse_args()
     feats = Path(args.feats)
@@ -229,9 +243,49 @@ def spread_weights(learned, desc, text, sel) -> tuple[float, float, float]:
     return float(w[0]), float(w[1]), float(w[2])
 
 
+def guard_filter(args, grid, learned, desc, text, guard: str) -> tuple[list, dict]:
+    """The settings of ``grid`` that do no worse than ``--guard-ref`` on the ``guard`` set (top-1 and
+    top-5, with the spread weights of the main set's queries), and each setting's guard scores."""
+    gdir = Path(guard)
+    grecs = json.loads((gdir / "queries.json").read_text())
+    n_meshes = len(json.loads((gdir / "meshes.json").read_text()))
+    gdesc, gtext, ginl, gexp, _, _ = dumped_cues(grecs)
+    allq = np.ones(len(desc), bool)
+    cache: dict = {}
+
+    def rates(g):
+        (size, flip, pool, margin), wv = g
+        key = (size, flip, pool, margin)
+        if key not in cache:
+            cache[key] = learned_scores(gdir, size, flip, pool, n_meshes, margin)
+        _, wd, wt = spread_weights(learned[key], desc, text, allq)
+        r = ranks_of(fuse(cache[key], gdesc, gtext, ginl, wd, wt, wv, None), gexp)
+        return float((r <= 1).mean()), float((r <= 5).mean())
+
+    size, flip, pool, margin, wv = args.guard_ref.split(",")
+    ref = rates(((int(size), int(flip), pool, int(margin)), float(wv)))
+    scores, keep = {}, []
+    for g in grid:
+        if g[0][0] > 0 and not (gdir / f"feat_{g[0][0]}_0.npz").exists():
+            continue  # not dumped for the guard set
+        if g[0][3] and not (gdir / f"rois_m{g[0][3]}_{g[0][0]}.npz").exists():
+            continue
+        if g[0][1] and not (gdir / f"feat_{g[0][0]}_1.npz").exists():
+            continue
+        t1, t5 = rates(g)
+        scores[str(g)] = (round(t1, 3), round(t5, 3))
+        if t1 >= ref[0] - 1e-9 and t5 >= ref[1] - 1e-9:
+            keep.append(g)
+    return keep, {"reference": args.guard_ref, "reference_top1_top5": ref, "kept": len(keep), "of": len(grid),
+                  "scores": scores}  # fmt: skip
+
+
 def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, groups, s1) -> int:
     """Cross-validation with spread weights: only the learned variant and the verification weight are chosen."""
     grid = list(itertools.product(learned, (0.0, 0.1, 0.2, 0.3)))
+    guard = {}
+    for gdir in args.guard:
+        grid, guard[gdir] = guard_filter(args, grid, learned, desc, text, gdir)
 
     def ranks(g, sel):
         wv, L = g[1], learned[g[0]]
@@ -270,6 +324,7 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
     out = {
         "folds": args.folds,
         "weights": "spread",
+        "guard": guard,
         "chosen_per_fold": chosen,
         "chosen_on_all": {
             "size": size,
