@@ -15,8 +15,9 @@ frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of it
 on every side before the square padding; the stored views are embedded as rendered, so the option is left
 out of the onboarding fingerprint (:data:`pipeline.profiles.UNFINGERPRINTED_OPTIONS`). ``precision``
 ``auto`` (default) runs the network in bfloat16 where that pays (:func:`bf16_pays`: a CPU with AMX), else
-float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by a cosine of about 1e-4, so it is not fingerprinted
-either. Rows are L2-normalised float32, so the stage-2 score is a cosine.
+float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by
+a cosine of about 1e-4, so it is not fingerprinted either. Rows are L2-normalised float32, so the stage-2
+score is a cosine.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ def square_on(image: Image.Image, fill: tuple[int, int, int]) -> Image.Image:
 
 def bf16_pays(device) -> bool:
     """Whether bfloat16 is the faster choice on ``device``: a CPU with AMX tiles (Intel Sapphire
-    Rapids on), where it runs the ViT-S/14 about 2x faster than float32 (docs/performance.md); elsewhere
+    Rapids on), where it runs the ViT-S/14 2.4-3.3x faster than float32 (docs/performance.md); elsewhere
     float32, since bfloat16 without AMX is emulated and slower."""
     import torch
 

@@ -5,7 +5,8 @@ Loading a ``Dinov2Model`` imports transformers' modelling stack, about 2.4 s on 
 module is the same network (the same ATen operations, outputs equal bit for bit, checked when it is
 written and by the tests) and loads without importing transformers. It is written once per
 converted directory, input size, precision and torch version, next to the conversion
-(``traced-<size>px[-bf16]-torch<v>.pt``, atomically); a directory that cannot be written only costs each load the transformers import.
+(``traced-<size>px[-bf16]-torch<v>.pt``, atomically); a directory that cannot be written only costs each
+load the transformers import.
 
 Used on CPU for the package's own backbone; other directories and devices load the transformers model.
 TorchScript is deprecated from torch 2.13 on (``torch.export`` is its successor) but still supported by

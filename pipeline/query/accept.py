@@ -48,7 +48,7 @@ def learned_identity(spec) -> str:
     """The learned view encoder as a calibration sees it: its id and the options that move its cosines
     (input size, pooling, flip, ROI framing)."""
     opts = {k: v for k, v in sorted(spec.options.items()) if k not in UNSCORED_OPTIONS}
-    if not opts.get("roi_margin", 1):  # no framing, as when the option is not given
+    if "roi_margin" in opts and not opts["roi_margin"]:  # no framing: as when the option is not given
         del opts["roi_margin"]
     return f"{spec.key()} {json.dumps(opts, sort_keys=True)}"
 
