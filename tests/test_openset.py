@@ -232,3 +232,20 @@ def test_leaving_meshes_out_equals_a_store_built_without_them(stores, calibratio
             without_meshes(rf, ["id-nothing"])
         with pytest.raises(ValueError, match="empty"):
             without_meshes(rf, rf.mesh_ids)
+
+
+def test_a_calibration_fitted_on_fused_scores_does_not_judge_an_unfused_store(stores, tmp_path):
+    """The fake stores hold no learned embeddings, so their queries do not fuse: a calibration recorded
+    with the learned encoder fused does not apply there (``accepted`` null, with the note)."""
+    from pipeline.profiles import get_profile
+    from pipeline.query.accept import learned_identity
+
+    m = AcceptModel(("score",), (0.0,), (1.0,), (200.0,), -200.0 * 0.95, threshold=0.5)
+    keys = {r: (s.key() if s else None) for r, s in _offline_roles().items()}
+    keys["learned_encoder"] = learned_identity(get_profile("offline").learned_encoder)
+    path = Calibration("offline", keys, dict.fromkeys(VARIANTS, m)).write(tmp_path / "fused.json")
+    img, mask = red_can()
+    with open_retriever(stores[0], path) as r:
+        res = r.query(img, "the red can", mask=mask, top=1)
+    assert res.accepted is None and res.confidence is None
+    assert "learned_encoder" in res.to_dict()["acceptance"]["note"]

@@ -53,14 +53,13 @@ def learned_identity(spec) -> str:
     return f"{spec.key()} {json.dumps(opts, sort_keys=True)}"
 
 
-def model_identities(profile, onboarding) -> dict[str, str | None]:
+def model_identities(profile, onboarding, fused: bool) -> dict[str, str | None]:
     """What a calibration is tied to: the store's models of :data:`CALIBRATED_ROLES`, and the learned view
-    encoder as the query fuses it (``None`` when it does not: the role dropped, or a store without its
-    embeddings), since the fused score's distribution depends on it."""
+    encoder as the query fuses it, since the fused score's distribution depends on it. ``fused``: whether
+    the ranking context fuses it (``RankContext.learned``: the role kept and the store holding its
+    embeddings); ``None`` when it does not."""
     out = {r: onboarding.models.get(r) for r in CALIBRATED_ROLES}
-    spec = profile.learned_encoder
-    fused = spec is not None and bool(onboarding.fingerprints.get("embed_image:learned_encoder"))
-    out["learned_encoder"] = learned_identity(spec) if fused else None
+    out["learned_encoder"] = learned_identity(profile.learned_encoder) if fused else None
     return out
 
 

@@ -41,13 +41,15 @@ def ranking_context(store, profile, tables, settings, *, device, threads) -> Ran
         handoff=handoff,
         settings=settings,
     )
-    ctx.calibration, ctx.calibration_mismatch = calibration_for(profile, settings, tables.onboarding)
+    ctx.calibration, ctx.calibration_mismatch = calibration_for(
+        profile, settings, tables.onboarding, fused=learned is not None
+    )
     return ctx
 
 
-def calibration_for(profile, settings, onboarding):
+def calibration_for(profile, settings, onboarding, *, fused: bool):
     """The profile's acceptance calibration (:mod:`pipeline.query.accept`) and why it does not fit this
-    store (``None`` when it does)."""
+    store and ranking (``None`` when it does; ``fused``: the learned encoder takes part)."""
     from pipeline.query.accept import CalibrationError, load_calibration, model_identities
 
     try:
@@ -56,4 +58,4 @@ def calibration_for(profile, settings, onboarding):
         raise QueryError(str(exc)) from None
     if calibration is None:
         return None, None
-    return calibration, calibration.mismatch(model_identities(profile, onboarding))
+    return calibration, calibration.mismatch(model_identities(profile, onboarding, fused))
