@@ -266,12 +266,14 @@ def guard_filter(args, grid, learned, desc, text, guard: str) -> tuple[list, dic
     ref = rates(((int(size), int(flip), pool, int(margin)), float(wv)))
     scores, keep = {}, []
     for g in grid:
-        if g[0][0] > 0 and not (gdir / f"feat_{g[0][0]}_0.npz").exists():
+        size, flip, _, margin = g[0]
+        needed = (
+            [f"feat_{size}_0.npz"]
+            + [f"feat_{size}_1.npz"] * flip
+            + [f"rois_m{margin}_{size}.npz"] * bool(margin)
+        )
+        if not all((gdir / name).exists() for name in needed):
             continue  # not dumped for the guard set
-        if g[0][3] and not (gdir / f"rois_m{g[0][3]}_{g[0][0]}.npz").exists():
-            continue
-        if g[0][1] and not (gdir / f"feat_{g[0][0]}_1.npz").exists():
-            continue
         t1, t5 = rates(g)
         scores[str(g)] = (round(t1, 3), round(t5, 3))
         if t1 >= ref[0] - 1e-9 and t5 >= ref[1] - 1e-9:
