@@ -165,6 +165,27 @@ def test_retriever_reloads_in_place_when_a_file_vanished(store, capsys):
     r.close()
 
 
+def test_rank_alone_reloads_when_verification_meets_a_vanished_file(store, capsys):
+    """``Retriever.rank`` (what sweeps and the evaluation call with a stored embedding) recovers like
+    ``query``: verification reads ``view_features`` after compaction deleted the files it pinned."""
+    from serve_helpers import enable_features
+    from test_serve import red_can
+
+    enable_features(store)
+    add_fake_mesh(store, "more", (20, 200, 200), 40, 40, features=True)  # view_features: files to merge
+    r = open_retriever(store, lease=False)
+    assert r.verifier.available
+    img, mask, _ = red_can()
+    emb = r.embed(r.make_roi(img, "the red can", mask=mask), "the red can")
+    old = dict(r.versions)
+    run_compact(store, capsys)
+    assert not all(p.exists() for p in needed_files(store, old))
+    out = r.rank(emb, verify=True).to_dict()
+    assert out["candidates"][0]["name"] == "red_can" and r.generation == 1
+    assert r.versions == consistent_versions(store) != old
+    r.close()
+
+
 def test_retriever_raises_store_unavailable_when_the_newest_snapshot_fails_too(store, capsys):
     r = open_retriever(store, lease=False)
     run_compact(store, capsys)

@@ -163,10 +163,13 @@ class Retriever:
             emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
         return emb
 
+    @recovering
     def rank(self, emb: QueryEmbedding, mode: str | None = None, **knobs) -> QueryResult:
         """Rank the store's models for ``emb`` with the mode's step list (no model calls). ``knobs``:
         ``threshold``, ``fallback_k``, ``top``, ``prompt_weight``, ``fallback_unit``, ``views``, ``verify``
-        (:meth:`pipeline.query.steps.state.RankRequest.make`; ``None`` = the settings' value)."""
+        (:meth:`pipeline.query.steps.state.RankRequest.make`; ``None`` = the settings' value).
+        Verification reads stored features as it goes, so a rank can meet a file that compaction
+        removed: it then reloads and retries once, as :meth:`query` does."""
         return rank(self.ranking, emb, mode=mode, **knobs)
 
     @recovering
@@ -177,7 +180,7 @@ class Retriever:
         clock = PartClock(self.load_seconds)
         roi = clock.part("roi_ms", self.make_roi, image, prompt, box=box, mask=mask, roi_mode=roi_mode)
         emb = clock.part("embed_ms", self.embed, roi, prompt)
-        result = self.rank(emb, **knobs)
+        result = rank(self.ranking, emb, **knobs)  # not self.rank: this call already holds the gate
         result.timings = clock.timings(result.timings)
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
         result.query = {"image": roi.photo_source, "image_size": list(roi.photo_size), "prompt": prompt}
