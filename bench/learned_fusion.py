@@ -7,7 +7,8 @@ learned features of views and ROIs). Every setting of the grid below is scored o
 training folds; the best one (top-1 + top-5 / 2, ties to the simpler setting) ranks the held-out fold.
 Folds: leave one photo out (default) or leave one object out. Both query kinds (mask and box) are pooled.
 Prints the held-out top-1 / top-5 per kind with 95% bootstrap intervals (photos resampled), the setting
-each fold chose, the setting chosen on all queries, and per-object held-out ranks.
+each fold chose, the setting chosen on all queries, and per-object held-out ranks. ``--ensembles`` adds
+the mean of two CLS variants' learned scores at different input sizes to the settings searched.
 
 The fused score of a mesh (:mod:`pipeline.query.fusion`) is
 
@@ -57,6 +58,25 @@ def learned_scores(
     for j in range(n_meshes):
         out[:, j] = s[:, mesh == j].max(axis=1)
     return out
+
+
+def parts(key) -> list[tuple]:
+    """The (size, flip, pooling, margin) variants of a learned key: itself, or an ensemble's members."""
+    return list(key) if isinstance(key[0], tuple) else [key]
+
+
+def key_simplicity(key) -> float:
+    """Fewer members, no flip, no framing, smaller inputs first (the tie-break between settings)."""
+    return sum(flip + (margin > 0) + size / 1000 for size, flip, _, margin in parts(key)) + len(parts(key)) - 1
+
+
+def describe_key(key) -> dict:
+    """A learned key as the JSON output shows it (an ensemble: its members under ``ensemble``)."""
+    members = [
+        {"size": size, "flip": bool(flip), "pooling": pool, "roi_margin_pct": margin}
+        for size, flip, pool, margin in parts(key)
+    ]
+    return members[0] if len(members) == 1 else {"ensemble": members}
 
 
 def dumped_cues(recs: list[dict]):
@@ -147,8 +167,16 @@ def main() -> int:
         help="the reference setting size,flip,pooling,margin%%,w_verify (default: the setting shipped before "
         "the guard existed)",
     )
+    p.add_argument(
+        "--ensembles",
+        action="store_true",
+        help="also consider the mean of two variants' learned scores (CLS pooling, different input sizes): "
+        "two learned embeddings per view and per ROI (spread weights only)",
+    )
     p.add_argument("--json")
     args = p.parse_args()
+    if args.ensembles and args.weights != "spread":
+        p.error("--ensembles needs --weights spread")
     feats = Path(args.feats)
     recs = json.loads((feats / "queries.json").read_text())
     n_meshes = len(json.loads((feats / "meshes.json").read_text()))
@@ -171,6 +199,11 @@ def main() -> int:
         if size in sizes:
             for pool in ("cls", "mean", "patch"):
                 learned[(size, 0, pool, margin)] = learned_scores(feats, size, 0, pool, n_meshes, margin)
+    if args.ensembles:
+        singles = [k for k in learned if k[2] == "cls" and k[1] == 0]
+        for a, b in itertools.combinations(singles, 2):
+            if a[0] != b[0]:
+                learned[(a, b)] = (learned[a] + learned[b]) / 2
     steps = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
     if args.weights == "spread":
         return spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, groups, s1)
@@ -253,25 +286,29 @@ def guard_filter(args, grid, learned, desc, text, guard: str) -> tuple[list, dic
     allq = np.ones(len(desc), bool)
     cache: dict = {}
 
+    def scores_of(key):
+        for m in parts(key):
+            if m not in cache:
+                cache[m] = learned_scores(gdir, m[0], m[1], m[2], n_meshes, m[3])
+        return np.mean([cache[m] for m in parts(key)], axis=0)
+
     def rates(g):
-        (size, flip, pool, margin), wv = g
-        key = (size, flip, pool, margin)
-        if key not in cache:
-            cache[key] = learned_scores(gdir, size, flip, pool, n_meshes, margin)
+        key, wv = g
         _, wd, wt = spread_weights(learned[key], desc, text, allq)
-        r = ranks_of(fuse(cache[key], gdesc, gtext, ginl, wd, wt, wv, None), gexp)
+        r = ranks_of(fuse(scores_of(key), gdesc, gtext, ginl, wd, wt, wv, None), gexp)
         return float((r <= 1).mean()), float((r <= 5).mean())
 
     size, flip, pool, margin, wv = args.guard_ref.split(",")
     ref = rates(((int(size), int(flip), pool, int(margin)), float(wv)))
     scores, keep = {}, []
     for g in grid:
-        size, flip, _, margin = g[0]
-        needed = (
-            [f"feat_{size}_0.npz"]
+        needed = [
+            name
+            for size, flip, _, margin in parts(g[0])
+            for name in [f"feat_{size}_0.npz"]
             + [f"feat_{size}_1.npz"] * flip
             + [f"rois_m{margin}_{size}.npz"] * bool(margin)
-        )
+        ]
         if not all((gdir / name).exists() for name in needed):
             continue  # not dumped for the guard set
         t1, t5 = rates(g)
@@ -298,8 +335,7 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
         scored = []
         for k, g in enumerate(grid):
             r = ranks(g, sel)[0][sel]
-            (size, flip, _, margin), wv = g
-            simple = (wv > 0) + flip + (margin > 0) + size / 1000
+            simple = (g[1] > 0) + key_simplicity(g[0])
             scored.append((-((r <= 1).mean() + 0.5 * (r <= 5).mean()), simple, k))
         return min(scored)[2]
 
@@ -310,30 +346,22 @@ def spread_cv(args, recs, learned, desc, text, inl, expected, kind, photo, group
         k = best(~test)
         r, w = ranks(grid[k], ~test)
         held[test] = r[test]
-        (size, flip, pool, margin), wv = grid[k]
         chosen[str(gname)] = {
-            "size": size,
-            "flip": bool(flip),
-            "pooling": pool,
-            "roi_margin_pct": margin,
-            "w_verify": wv,
+            **describe_key(grid[k][0]),
+            "w_verify": grid[k][1],
             "weights_learned_desc_text": [round(x, 3) for x in w],
         }
     allq = np.ones(len(recs), bool)
     k = best(allq)
     r_all, w_all = ranks(grid[k], allq)
-    (size, flip, pool, margin), wv = grid[k]
     out = {
         "folds": args.folds,
         "weights": "spread",
         "guard": guard,
         "chosen_per_fold": chosen,
         "chosen_on_all": {
-            "size": size,
-            "flip": bool(flip),
-            "pooling": pool,
-            "roi_margin_pct": margin,
-            "w_verify": wv,
+            **describe_key(grid[k][0]),
+            "w_verify": grid[k][1],
             "weights_learned_desc_text": [round(x, 3) for x in w_all],
         },
     }
