@@ -216,8 +216,9 @@ def peak_rss_mb() -> float:
 
 # ---------------------------------------------------------------------------- index worker (subprocess)
 def index_worker(store_path: str, qfile: str, out: str, repeats: int, nprobes: list[int]) -> None:
-    """Open the index alone and answer every query at each of ``nprobes`` (the manifest's first); write
-    timings, answers, the range search's share of each tau query and its survivors, and peak RSS."""
+    """Open the index alone and answer every query as the manifest says (its tau-following probe where it
+    has one), then with its fixed ``nprobe`` and at each of ``nprobes``; write timings, answers, the range
+    search's share of each tau query, its survivors and lists probed, and peak RSS."""
     from pipeline.index.layout import index_dir, read_manifest
     from pipeline.index.snapshot import IndexSnapshot
     from pipeline.store import slug
@@ -232,9 +233,14 @@ def index_worker(store_path: str, qfile: str, out: str, repeats: int, nprobes: l
     open_s = time.perf_counter() - t0
     del active
     runs = []
-    for nprobe in [snap.nprobe, *[n for n in nprobes if n != snap.nprobe]]:
-        snap.index.nprobe = nprobe
-        answers, times, range_ms, survivors = [], [], [], []
+    delta = snap.probe_delta
+    configs = [(delta, snap.nprobe)]  # as the manifest says
+    if delta is not None:
+        configs.append((None, snap.nprobe))  # its fixed nprobe, for comparison
+    configs += [(None, n) for n in nprobes if (None, n) not in configs]
+    for delta_i, nprobe in configs:
+        snap.index.nprobe, snap.probe_delta = nprobe, delta_i
+        answers, times, range_ms, survivors, lists = [], [], [], [], []
         for q, tau in zip(queries, taus, strict=True):
             t = None if not np.isfinite(tau) else float(tau)
             r = snap.run(q, t, 10, "captions")
@@ -250,8 +256,17 @@ def index_worker(store_path: str, qfile: str, out: str, repeats: int, nprobes: l
                 codes = snap._tau_candidates(q, t)
                 range_ms.append((time.perf_counter() - t1) * 1000)
                 survivors.append(len(codes))
+                lists.append(len(snap.probed_lists(q, t)[0]) if delta_i is not None else nprobe)
         runs.append(
-            {"nprobe": nprobe, "times": times, "answers": answers, "range_ms": range_ms, "survivors": survivors}
+            {
+                "probe": "fixed" if delta_i is None else f"tau - {delta_i:g}",
+                "nprobe": nprobe,
+                "times": times,
+                "answers": answers,
+                "range_ms": range_ms,
+                "survivors": survivors,
+                "lists": lists,
+            }
         )
     Path(out).write_text(json.dumps({"runs": runs, "rss_mb": peak_rss_mb(), "open_s": open_s}))
 
@@ -402,7 +417,9 @@ def main(argv=None) -> int:
     for run in w["runs"]:
         sweep.append(
             {
+                "probe": run["probe"],
                 "nprobe": run["nprobe"],
+                "p50_lists": float(np.percentile(run["lists"], 50)) if run["lists"] else None,
                 "p50_ms": float(np.percentile(run["times"], 50)),
                 "p99_ms": float(np.percentile(run["times"], 99)),
                 "p50_range_ms": float(np.percentile(run["range_ms"], 50)) if run["range_ms"] else None,
@@ -498,6 +515,8 @@ def main(argv=None) -> int:
         "codec": man["codec"],
         "nlist": man["nlist"],
         "nprobe": man["nprobe"],
+        "probe": man.get("probe"),
+        "p50_lists": q0["p50_lists"],
         "eps": man["eps"],
         "threads": a.threads,
     }

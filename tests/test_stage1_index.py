@@ -46,6 +46,7 @@ def snapshot(store, exhaustive: bool = True):
     snap = open_index(store, tables_of(store))
     if exhaustive:  # every list probed: the index must then give exactly the exact path's answer
         snap.index.nprobe = snap.index.nlist
+        snap.probe_delta = None  # the fixed nprobe, not the tau-following depth
     return snap
 
 
@@ -354,3 +355,70 @@ def test_calibration_leaves_tiny_indexes_alone():
     index.train(x)
     index.add(x)
     assert b.calibrate_nprobe(index, x, mesh_code, np.arange(len(x)), np.random.default_rng(0), 0.01, 1)[0] == 1
+
+
+def test_tau_following_probe_is_calibrated_and_searches_deeper_for_lower_tau():
+    """The build's probe depth: every list whose centroid scores >= tau - delta. The smallest ladder step
+    reaching the recall target is chosen (smaller ones miss it), held-out queries searched that way keep
+    the recall, and a high tau probes fewer lists than a low one."""
+    import faiss
+
+    from pipeline.index import build as b
+    from pipeline.index.snapshot import probe_lists
+
+    rng = np.random.default_rng(0)
+    x, mesh_code = _clustered(rng, 4000, 32)
+    index = faiss.index_factory(32, "IVF40,SQ8", faiss.METRIC_INNER_PRODUCT)
+    index.train(x)
+    index.add(x)
+    live = np.arange(len(x))
+    eps, _ = b.measure_eps(index, x, live, rng)
+    q, cases = b.calibration_cases(x, mesh_code, live, rng)
+    probe, rec = b.calibrate_delta(index, x, mesh_code, q, cases, eps)
+    assert probe is not None and probe["min_lists"] == b.MIN_LISTS
+    recall = {float(k): v for k, v in rec["recall"].items()}
+    assert recall[probe["delta"]] >= b.RECALL_TARGET
+    assert all(v < b.RECALL_TARGET for k, v in recall.items() if k < probe["delta"])
+    assert index.nprobe == 1  # left as it was
+    held = np.random.default_rng(1)
+    hq = b.sample_queries(x, live, held, 200)
+    exact = (x @ hq.T).reshape(4000, 8, -1).max(1)
+    centroids = b.centroids_of(index)
+    ivf = faiss.extract_index_ivf(index)
+    found, lists_at = [], {}
+    for i in range(len(hq)):
+        order = np.argsort(-exact[:, i])
+        n = int(held.integers(1, 101))
+        tau = float((exact[order[n - 1], i] + exact[order[n], i]) / 2)
+        keys = probe_lists(centroids @ hq[i], tau, probe["delta"], probe["min_lists"])
+        index.nprobe = len(keys)
+        dis = (centroids[keys] @ hq[i])[None, :].astype(np.float32)
+        _, _, labels = ivf.range_search_preassigned(hq[i : i + 1], tau - eps, keys[None, :], dis)
+        found.append(len(set(mesh_code[labels]) & set(order[:n])) / n)
+        lists_at[n] = len(keys)
+    assert np.mean(found) >= 0.99
+    few, many = min(lists_at), max(lists_at)
+    assert lists_at[few] < lists_at[many]  # the 1-model tau-set searches fewer lists than the 100-model one
+
+
+def test_snapshot_follows_tau_and_answers_exactly_when_every_list_is_reached(store_path):
+    """The snapshot's tau search probes the lists the calibrated depth names: all of them when delta
+    covers every centroid (then the answers are the exact path's), only the best ``min_lists`` when it
+    covers none."""
+    from pipeline.index.build import DELTA_LADDER
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        man = sync(store, ds, fp, enc).manifest
+        assert man["probe"]["delta"] in DELTA_LADDER and man["probe_calibration"]["queries"] > 0
+        snap = snapshot(store, exhaustive=False)
+        exact = TextFilter(tables_of(store).captions)
+        nlist = snap.index.nlist
+        for q in queries():
+            tau = 0.6
+            snap.probe_delta = 10.0
+            assert len(snap.probed_lists(q, tau)[0]) == nlist
+            answers_equal(snap.run(q, tau, 10, "meshes"), exact.run(q, tau, 10, "meshes"))
+            snap.probe_delta = -10.0
+            keys, dis = snap.probed_lists(q, tau)
+            assert len(keys) == snap.min_lists and np.all(np.diff(dis) <= 0)

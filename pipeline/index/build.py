@@ -11,6 +11,9 @@ The codec's error bound ``eps`` (how far a coded inner product can lie from the 
 build on a sample: ``EPS_MARGIN`` times the largest error seen, so the range search at ``tau - eps``
 keeps every caption whose exact score is >= tau and whose list was probed.
 
+How deep a tau query searches is calibrated at build too: every list whose centroid scores >= tau -
+``delta`` (:func:`calibrate_delta`), and, for the k-NN fallback, a fixed ``nprobe`` (:func:`calibrate_nprobe`).
+
 The build streams the table in record batches into the vector file (never the whole float matrix in
 memory), then trains on a sample and adds the rows in chunks read back from the memory map.
 """
@@ -41,6 +44,12 @@ MIN_NPROBE = 16
 RECALL_TARGET = 0.995
 CALIB_QUERIES = 64
 NPROBE_LADDER = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0)
+#: A tau search probes the lists whose centroid scores >= tau - delta (at least MIN_LISTS): how deep to
+#: search follows the query's tau, where a fixed nprobe is sized for the hardest queries (at 10M rows most
+#: tau-sets lie in the best list, a few need a thousand; docs/performance.md). delta is the smallest
+#: DELTA_LADDER step that reaches RECALL_TARGET on the same sample cases (:func:`calibrate_delta`).
+DELTA_LADDER = (0.02, 0.04, 0.06, 0.08, 0.1, 0.12, 0.15, 0.2, 0.3, 0.5)
+MIN_LISTS = 16
 #: eps = EPS_MARGIN x the largest coded-vs-exact inner-product error on the build sample
 EPS_MARGIN = 1.5
 #: k-means on TRAIN_PER_LIST sampled rows per list, KMEANS_ITERS iterations (faiss's default is 25:
@@ -257,9 +266,11 @@ def write_base(
         index.add_with_ids(np.ascontiguousarray(vecs[ids]), ids.astype(np.int64))
     if train:
         out["eps"], out["eps_max_seen"] = measure_eps(index, vecs, live, rng)
-        out["nprobe"], out["nprobe_calibration"] = calibrate_nprobe(
-            index, vecs, mesh_code, live, rng, out["eps"], int(man["nprobe"])
+        q, cases = calibration_cases(vecs, mesh_code, live, rng)
+        out["nprobe"], out["nprobe_calibration"] = nprobe_for_cases(
+            index, mesh_code, q, cases, out["eps"], int(man["nprobe"])
         )
+        out["probe"], out["probe_calibration"] = calibrate_delta(index, vecs, mesh_code, q, cases, out["eps"])
         out["drift"] = {
             "train_residual": coarse_residual(index, vecs, live, rng),
             "rows_at_train": int(len(live)),
@@ -385,20 +396,13 @@ def top_model_scores(vecs, mesh_code: np.ndarray, live: np.ndarray, q: np.ndarra
     return out
 
 
-def calibrate_nprobe(
-    index, vecs, mesh_code: np.ndarray, live: np.ndarray, rng, eps: float, nprobe: int
-) -> tuple[int, dict]:
-    """(nprobe, record): the smallest ladder step over ``nprobe`` whose range search at ``tau - eps``
-    reaches a caption of RECALL_TARGET of the sample queries' tau-set models (mean over queries; each tau
-    halfway between the n-th and (n+1)-th best model, n uniform in 1..100, as the benchmark draws them)."""
-    import faiss
-
-    nlist = faiss.extract_index_ivf(index).nlist
-    steps = sorted({min(nlist, max(1, int(math.ceil(nprobe * f)))) for f in NPROBE_LADDER})
-    record = {"target": RECALL_TARGET, "queries": 0, "recall": {}}
+def calibration_cases(vecs, mesh_code: np.ndarray, live: np.ndarray, rng) -> tuple[np.ndarray, list]:
+    """(queries, cases): CALIB_QUERIES sample queries and, per query with enough models, a case
+    ``(query row, tau, tau-set models)``, tau halfway between the n-th and (n+1)-th best model, n uniform
+    in 1..100, as the benchmark draws them. No cases for fewer than 3 models."""
     n_models = len(np.unique(mesh_code[live])) if len(live) else 0
-    if n_models < 3 or nlist <= 1:
-        return nprobe, record
+    if n_models < 3:
+        return np.zeros((0, vecs.shape[1]), np.float32), []
     q = sample_queries(vecs, live, rng, CALIB_QUERIES)
     kmax = min(100, n_models - 1)
     tops = top_model_scores(vecs, mesh_code, live, q, kmax + 1)
@@ -408,7 +412,32 @@ def calibrate_nprobe(
             continue
         n = int(rng.integers(1, min(kmax, len(m) - 1) + 1))
         cases.append((qi, float((s[n - 1] + s[n]) / 2), set(m[:n].tolist())))
-    record["queries"] = len(cases)
+    return q, cases
+
+
+def calibrate_nprobe(
+    index, vecs, mesh_code: np.ndarray, live: np.ndarray, rng, eps: float, nprobe: int
+) -> tuple[int, dict]:
+    """(nprobe, record): the smallest ladder step over ``nprobe`` whose range search at ``tau - eps``
+    reaches a caption of RECALL_TARGET of the sample queries' tau-set models (mean over queries,
+    :func:`calibration_cases`)."""
+    import faiss
+
+    if faiss.extract_index_ivf(index).nlist <= 1:
+        return nprobe, {"target": RECALL_TARGET, "queries": 0, "recall": {}}
+    q, cases = calibration_cases(vecs, mesh_code, live, rng)
+    return nprobe_for_cases(index, mesh_code, q, cases, eps, nprobe)
+
+
+def nprobe_for_cases(index, mesh_code: np.ndarray, q: np.ndarray, cases: list, eps: float, nprobe: int):
+    """:func:`calibrate_nprobe` on given cases."""
+    import faiss
+
+    nlist = faiss.extract_index_ivf(index).nlist
+    steps = sorted({min(nlist, max(1, int(math.ceil(nprobe * f)))) for f in NPROBE_LADDER})
+    record = {"target": RECALL_TARGET, "queries": len(cases), "recall": {}}
+    if not cases or nlist <= 1:
+        return nprobe, record
     chosen, old = steps[-1], index.nprobe
     try:
         for step in steps:
@@ -425,6 +454,55 @@ def calibrate_nprobe(
                 break
     finally:
         index.nprobe = old
+    return chosen, record
+
+
+def calibrate_delta(index, vecs, mesh_code: np.ndarray, q: np.ndarray, cases: list, eps: float):
+    """(probe, record): the smallest DELTA_LADDER step whose tau-following probe (every list with
+    centroid score >= ``tau - delta``, at least MIN_LISTS; :func:`pipeline.index.snapshot.probe_lists`)
+    reaches RECALL_TARGET of the cases' tau-set models; probe is None when no step does (the fixed
+    nprobe then serves). One range search over every list per case finds each tau-set model's best
+    reachable list: a model is found at ``delta`` exactly when one of its surviving captions lies in a
+    probed list."""
+    import faiss
+
+    from pipeline.index.snapshot import probe_lists
+
+    ivf = faiss.extract_index_ivf(index)
+    record: dict = {"target": RECALL_TARGET, "queries": len(cases), "recall": {}, "median_lists": {}}
+    if not cases or ivf.nlist <= 1:
+        return None, record
+    centroids = centroids_of(index)
+    per_case = []
+    old = index.nprobe
+    try:
+        index.nprobe = ivf.nlist
+        for qi, tau, truth in cases:
+            _, _, labels = index.range_search(q[qi : qi + 1], tau - eps)
+            labels = np.sort(labels)
+            cs = centroids @ q[qi]
+            lists = ivf.quantizer.search(np.ascontiguousarray(vecs[labels]), 1)[1][:, 0] if len(labels) else []
+            best: dict[int, float] = {}
+            for m, c in zip(mesh_code[labels].tolist(), cs[lists].tolist(), strict=True):
+                if m in truth and c > best.get(m, -np.inf):
+                    best[m] = c
+            per_case.append((cs, tau, truth, best))
+    finally:
+        index.nprobe = old
+    chosen = None
+    for delta in DELTA_LADDER:
+        found, n_lists = [], []
+        for cs, tau, truth, best in per_case:
+            keys = probe_lists(cs, tau, delta, MIN_LISTS)
+            floor = float(cs[keys[-1]])  # the lowest centroid score probed
+            found.append(sum(best.get(m, -np.inf) >= floor for m in truth) / len(truth))
+            n_lists.append(len(keys))
+        rec = float(np.mean(found))
+        record["recall"][str(delta)] = round(rec, 5)
+        record["median_lists"][str(delta)] = int(np.median(n_lists))
+        if rec >= RECALL_TARGET:
+            chosen = {"delta": delta, "min_lists": MIN_LISTS}
+            break
     return chosen, record
 
 
