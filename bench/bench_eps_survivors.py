@@ -14,41 +14,28 @@ largest) and the median range-search time.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from stage1_workdir import add_arguments, open_workdir  # noqa: E402
+
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--workdir", type=Path, required=True, help="bench_stage1_index.py's --workdir")
-    p.add_argument("--rows", type=int, required=True)
-    p.add_argument("--dim", type=int, default=384)
-    p.add_argument("--seed", type=int, default=0)
+    add_arguments(p, queries=24)
     p.add_argument("--eps", default="0.0445,0.1,0.16", help="comma-separated error bounds")
-    p.add_argument("--queries", type=int, default=24, help="tau queries used (the first ones)")
-    p.add_argument("--threads", type=int, default=2)
     a = p.parse_args(argv)
     import faiss
 
-    faiss.omp_set_num_threads(a.threads)
-    root = a.workdir / f"store-{a.rows}-{a.dim}-{a.seed}" / "_index" / "stage1"
-    dirs = sorted(root.glob("*/manifest.json"))
-    if not dirs:
-        print(
-            f"error: no stage-1 index under {root} (run bench/bench_stage1_index.py first)", file=sys.stderr
-        )
-        return 1
-    man = json.loads(dirs[0].read_text())
-    index = faiss.read_index(str(dirs[0].parent / man["base"]["faiss"]))
+    w = open_workdir(a)
+    man, index, q, taus, sel = w.manifest, w.index, w.queries, w.taus, w.tau_queries
     index.nprobe = int(man["nprobe"])
     faiss.extract_index_ivf(index).parallel_mode = 1
-    z = np.load(a.workdir / f"queries-{a.rows}.npz")
-    q, taus = z["queries"], z["taus"]
-    sel = [i for i in range(len(q)) if np.isfinite(taus[i])][: a.queries]
     print(f"index: {man['codec']}, nlist {man['nlist']}, nprobe {man['nprobe']}, built eps {man['eps']:.4f}")
     print("| eps | survivors: median | 90th percentile | largest | range search p50 |")
     print("|---|---|---|---|---|")

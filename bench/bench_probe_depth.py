@@ -13,43 +13,29 @@ the deepest such list rank (0: the best list) and how far below tau that list's 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from stage1_workdir import add_arguments, open_workdir  # noqa: E402
+
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--workdir", type=Path, required=True, help="bench_stage1_index.py's --workdir")
-    p.add_argument("--rows", type=int, required=True)
-    p.add_argument("--dim", type=int, default=384)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--queries", type=int, default=40, help="tau queries used (the first ones)")
-    p.add_argument("--threads", type=int, default=2)
+    add_arguments(p, queries=40)
     a = p.parse_args(argv)
     import faiss
 
-    faiss.omp_set_num_threads(a.threads)
-    root = a.workdir / f"store-{a.rows}-{a.dim}-{a.seed}" / "_index" / "stage1"
-    found = sorted(root.glob("*/manifest.json"))
-    if not found:
-        print(
-            f"error: no stage-1 index under {root} (run bench/bench_stage1_index.py first)", file=sys.stderr
-        )
-        return 1
-    d = found[0].parent
-    man = json.loads(found[0].read_text())
-    index = faiss.read_index(str(d / man["base"]["faiss"]))
+    w = open_workdir(a)
+    d, man, index, q, taus, sel = w.directory, w.manifest, w.index, w.queries, w.taus, w.tau_queries
     ivf = faiss.extract_index_ivf(index)
     index.nprobe = ivf.nlist
     vecs = np.memmap(d / man["vectors"], np.float32, "r", shape=(man["n_slots"], man["dim"]))
     with np.load(d / man["base"]["meta"]) as meta:
         mesh, centroids = meta["mesh_code"], meta["centroids"]
-    z = np.load(a.workdir / f"queries-{a.rows}.npz")
-    q, taus = z["queries"], z["taus"]
-    sel = [i for i in range(len(q)) if np.isfinite(taus[i])][: a.queries]
     print(f"index: {man['codec']}, nlist {ivf.nlist}, eps {man['eps']:.4f}; {len(sel)} tau queries")
     print("| query | tau | tau-set models | deepest list rank needed | delta needed |")
     print("|---|---|---|---|---|")

@@ -307,9 +307,8 @@ def _clustered(rng, n_models: int, dim: int, per: int = 8):
     return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32), np.repeat(np.arange(n_models), per)
 
 
-def test_nprobe_is_calibrated_to_the_recall_target():
-    """The build probes as many lists as its own sample queries need for the tau-set recall target: the
-    steps below the chosen one miss it, and held-out queries see the same recall."""
+def _calibration_index():
+    """(rng, IVF40-SQ8 index over 4,000 clustered 32-d models x 8 captions, rows, mesh codes, live rows, eps)."""
     import faiss
 
     from pipeline.index import build as b
@@ -321,6 +320,15 @@ def test_nprobe_is_calibrated_to_the_recall_target():
     index.add(x)
     live = np.arange(len(x))
     eps, _ = b.measure_eps(index, x, live, rng)
+    return rng, index, x, mesh_code, live, eps
+
+
+def test_nprobe_is_calibrated_to_the_recall_target():
+    """The build probes as many lists as its own sample queries need for the tau-set recall target: the
+    steps below the chosen one miss it, and held-out queries see the same recall."""
+    from pipeline.index import build as b
+
+    rng, index, x, mesh_code, live, eps = _calibration_index()
     nprobe, rec = b.calibrate_nprobe(index, x, mesh_code, live, rng, eps, 4)
     recall = {int(k): v for k, v in rec["recall"].items()}
     assert rec["queries"] >= 60 and rec["target"] == b.RECALL_TARGET
@@ -366,13 +374,7 @@ def test_tau_following_probe_is_calibrated_and_searches_deeper_for_lower_tau():
     from pipeline.index import build as b
     from pipeline.index.snapshot import probe_lists
 
-    rng = np.random.default_rng(0)
-    x, mesh_code = _clustered(rng, 4000, 32)
-    index = faiss.index_factory(32, "IVF40,SQ8", faiss.METRIC_INNER_PRODUCT)
-    index.train(x)
-    index.add(x)
-    live = np.arange(len(x))
-    eps, _ = b.measure_eps(index, x, live, rng)
+    rng, index, x, mesh_code, live, eps = _calibration_index()
     q, cases = b.calibration_cases(x, mesh_code, live, rng)
     probe, rec = b.calibrate_delta(index, x, mesh_code, q, cases, eps)
     assert probe is not None and probe["min_lists"] == b.MIN_LISTS
