@@ -424,3 +424,24 @@ def test_snapshot_follows_tau_and_answers_exactly_when_every_list_is_reached(sto
             snap.probe_delta = -10.0
             keys, dis = snap.probed_lists(q, tau)
             assert len(keys) == snap.min_lists and np.all(np.diff(dis) <= 0)
+
+
+def test_fallback_through_the_tau_following_probe_finds_the_exact_top_k(store_path):
+    """No tau (or nothing passes): the k-NN candidates come from a tau search at the k-th best coded score
+    of the query's best lists minus eps; with every list reachable the answers are the exact path's, and
+    with the calibrated depth the best model agrees on every fixture query."""
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+        snap = snapshot(store, exhaustive=False)
+        exact = TextFilter(tables_of(store).captions)
+        calibrated = snap.probe_delta
+        for q in queries():
+            for unit in ("captions", "meshes"):
+                want = exact.run(q, None, 10, unit)
+                snap.probe_delta = 10.0
+                assert snap._knn_by_probe(q, 8 * 10 + 64) is not None  # the probe path, not the fixed one
+                answers_equal(snap.run(q, None, 10, unit), want)
+                answers_equal(snap.run(q, 2.0, 10, unit), want)  # tau above every score: the fallback
+                snap.probe_delta = calibrated
+                assert snap.run(q, None, 10, unit).mesh_idx[0] == want.mesh_idx[0]

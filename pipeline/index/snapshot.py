@@ -10,7 +10,9 @@ The search keeps the exact path's semantics (``sql/stage1_text_filter.sql``):
   every model with a surviving caption is rescored exactly (all its captions, float32, from the
   vector file, read by row), score = max over its captions, kept when >= tau;
 * nothing passes (or no tau): a k-NN search of the caption rows finds the candidate models, rescored the
-  same way; then the fallback counts ``fallback_k`` caption rows (the paper's) or models, like the SQL.
+  same way (with a calibrated depth: the k-th best coded score in the query's best lists, minus eps,
+  bounds the k-th best exact score from below, and a tau search there finds the true top k); then the
+  fallback counts ``fallback_k`` caption rows (the paper's) or models, like the SQL.
 
 Returned scores are therefore exact inner products; what the index can lose is a model none of whose
 captions lies in the probed lists (measured as tau-set recall by ``bench/bench_stage1_index.py``).
@@ -212,6 +214,10 @@ class IndexSnapshot:
 
     def _knn_candidates(self, q: np.ndarray, k_rows: int) -> np.ndarray:
         """Mesh codes of (about) the ``k_rows`` best live caption rows of active meshes."""
+        if self.probe_delta is not None and self.index.ntotal:
+            codes = self._knn_by_probe(q, k_rows)
+            if codes is not None:
+                return codes
         want = k_rows
         while True:
             k = min(want, max(self.index.ntotal, 1))
@@ -229,6 +235,33 @@ class IndexSnapshot:
             if len(labels) + len(dl) >= k_rows or k >= self.index.ntotal:
                 return codes
             want *= 4
+
+    def _knn_by_probe(self, q: np.ndarray, k_rows: int) -> np.ndarray | None:
+        """The k-NN candidates through the tau-following probe: the ``k_rows``-th best coded score in the
+        query's best lists, minus eps, is at most the ``k_rows``-th best exact score of the whole index, so a
+        tau search at that score returns every row of the true top ``k_rows`` whose list it probes. None
+        when those lists hold fewer than ``k_rows`` live rows of active meshes (the fixed nprobe serves)."""
+        import faiss
+
+        keys, dis = self.probed_lists(q, np.inf)  # the best min_lists lists
+        k = int(min(self.index.ntotal, max(4 * k_rows, 256)))
+        d = np.empty((1, k), np.float32)
+        labels = np.empty((1, k), np.int64)
+        params = faiss.SearchParametersIVF()
+        params.nprobe = len(keys)
+        x = np.ascontiguousarray(q[None, :], np.float32)
+        faiss.extract_index_ivf(self.index).search_preassigned_c(
+            1, faiss.swig_ptr(x), k, faiss.swig_ptr(keys), faiss.swig_ptr(dis), faiss.swig_ptr(d),
+            faiss.swig_ptr(labels), False, params, None,
+        )  # fmt: skip
+        d, labels = d[0], labels[0]
+        ok = labels >= 0
+        d, labels = d[ok], labels[ok]
+        keep = self.alive[labels] & (self.code_to_idx[self.slot_mesh[labels]] >= 0)
+        if keep.sum() < k_rows:
+            return None
+        tau = float(np.sort(d[keep])[::-1][k_rows - 1]) - self.eps
+        return self._tau_candidates(q, tau)
 
     def run(
         self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
