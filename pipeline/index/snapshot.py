@@ -56,6 +56,13 @@ def per_mesh_max(mesh_idx: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, 
     return m[first].astype(np.int32), s[first]
 
 
+def row_scores(rows: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """``rows @ q`` without BLAS: right after a faiss search its OpenMP threads still spin, and a BLAS
+    product waits on them (8,008 x 384: 4.05 ms instead of 0.27 ms idle; this loop takes 0.64 ms;
+    `bench/bench_blas_after_faiss.py`)."""
+    return np.einsum("ij,j->i", rows, q)
+
+
 def probe_count(sorted_cs: np.ndarray, tau: float, delta: float, min_lists: int) -> int:
     """How many lists a tau search probes, given every centroid's score against the query best first:
     those scoring >= ``tau - delta``, and at least the ``min_lists`` best."""
@@ -164,11 +171,11 @@ class IndexSnapshot:
         codes = np.unique(codes)
         codes = codes[self.code_to_idx[codes] >= 0]
         slots = np.sort(self._slots_of(codes))  # sorted: the file is read front to back
-        scores = self.read_rows(slots) @ q if len(slots) else np.zeros(0, np.float32)
+        scores = row_scores(self.read_rows(slots), q) if len(slots) else np.zeros(0, np.float32)
         return slots, self.code_to_idx[self.slot_mesh[slots]], scores.astype(np.float32)
 
     def _delta_scores(self, q: np.ndarray) -> np.ndarray:
-        s = self.delta_vecs @ q if len(self.delta_vecs) else np.zeros(0, np.float32)
+        s = row_scores(self.delta_vecs, q) if len(self.delta_vecs) else np.zeros(0, np.float32)
         return np.where(self.delta_alive, s, -np.inf)
 
     # ------------------------------------------------------------------ search
@@ -188,7 +195,7 @@ class IndexSnapshot:
 
         ivf = faiss.extract_index_ivf(self.index)
         # every centroid's score, best first, from faiss (a NumPy product here would wait on BLAS threads
-        # while faiss's OpenMP threads spin after the previous search: 6 ms instead of 0.2 at 4,000 lists)
+        # while faiss's OpenMP threads spin after the previous search; bench/bench_blas_after_faiss.py)
         cs, order = ivf.quantizer.search(np.ascontiguousarray(q[None, :], np.float32), ivf.nlist)
         n = probe_count(cs[0], tau, float(self.probe_delta), self.min_lists)
         return np.ascontiguousarray(order[0][:n], np.int64), np.ascontiguousarray(cs[0][:n], np.float32)
