@@ -253,7 +253,7 @@ def index_worker(store_path: str, qfile: str, out: str, repeats: int, nprobes: l
             answers.append([r.mesh_idx.tolist(), r.scores.tolist(), bool(r.used_fallback)])
             if t is not None:
                 t1 = time.perf_counter()
-                codes = snap._tau_candidates(q, t)
+                codes = snap._tau_candidates(snap.query_scores(q), t)
                 range_ms.append((time.perf_counter() - t1) * 1000)
                 survivors.append(len(codes))
                 lists.append(len(snap.probed_lists(q, t)[0]) if delta_i is not None else nprobe)

@@ -440,7 +440,7 @@ def test_fallback_through_the_tau_following_probe_finds_the_exact_top_k(store_pa
             for unit in ("captions", "meshes"):
                 want = exact.run(q, None, 10, unit)
                 snap.probe_delta = 10.0
-                assert snap._knn_by_probe(q, 8 * 10 + 64) is not None  # the probe path, not the fixed one
+                assert snap._knn_by_probe(snap.query_scores(q), 8 * 10 + 64) is not None  # the probe path
                 answers_equal(snap.run(q, None, 10, unit), want)
                 answers_equal(snap.run(q, 2.0, 10, unit), want)  # tau above every score: the fallback
                 snap.probe_delta = calibrated

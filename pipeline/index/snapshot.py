@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import time
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,38 @@ def probe_lists(cs: np.ndarray, tau: float, delta: float, min_lists: int) -> np.
     """The lists (best first) a tau search probes, from the centroid scores ``cs`` in list order."""
     order = np.argsort(-cs, kind="stable")
     return order[: probe_count(cs[order], tau, delta, min_lists)].astype(np.int64)
+
+
+def _ivf_params(nprobe: int):
+    """faiss IVF search parameters probing ``nprobe`` lists (per call: concurrent queries share the index)."""
+    import faiss
+
+    params = faiss.SearchParametersIVF()
+    params.nprobe = int(nprobe)
+    return params
+
+
+class QueryScores:
+    """One query against one snapshot; what the tau search and the fallback both need is computed once:
+    every centroid's score, best first, and the delta rows' exact scores (dead rows -inf)."""
+
+    def __init__(self, snap: IndexSnapshot, q: np.ndarray) -> None:
+        self.snap, self.q = snap, q
+        self.x = np.ascontiguousarray(q[None, :], np.float32)
+
+    @cached_property
+    def ranked(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centroid scores, lists), best first, from faiss (a NumPy product here would wait on BLAS
+        threads while faiss's OpenMP threads spin after the previous search; bench/bench_blas_after_faiss.py)."""
+        import faiss
+
+        ivf = faiss.extract_index_ivf(self.snap.index)
+        cs, order = ivf.quantizer.search(self.x, ivf.nlist)
+        return cs[0], order[0]
+
+    @cached_property
+    def delta(self) -> np.ndarray:
+        return self.snap._delta_scores(self.q)
 
 
 class IndexSnapshot:
@@ -179,87 +212,79 @@ class IndexSnapshot:
         return np.where(self.delta_alive, s, -np.inf)
 
     # ------------------------------------------------------------------ search
-    def _tau_candidates(self, q: np.ndarray, tau: float) -> np.ndarray:
+    def query_scores(self, q: np.ndarray) -> QueryScores:
+        """What one query scores against this snapshot, each part computed once (:class:`QueryScores`)."""
+        return QueryScores(self, q)
+
+    def _tau_candidates(self, qs: QueryScores, tau: float) -> np.ndarray:
         radius = float(tau) - self.eps
         if self.index.ntotal:
-            labels = self._range_search(q, float(tau), radius)
+            labels = self._range_search(qs, float(tau), radius)
             labels = labels[self.alive[labels]]
         else:
             labels = np.zeros(0, np.int64)
-        d = np.flatnonzero(self._delta_scores(q) >= radius) + self.n_base
+        d = np.flatnonzero(qs.delta >= radius) + self.n_base
         return self.slot_mesh[np.concatenate([labels, d])]
 
-    def probed_lists(self, q: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    def probed_lists(self, q: np.ndarray | QueryScores, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """(lists, their centroid scores), best first, that a tau search probes with the calibrated depth."""
-        import faiss
+        cs, order = (q if isinstance(q, QueryScores) else self.query_scores(q)).ranked
+        n = probe_count(cs, tau, float(self.probe_delta), self.min_lists)
+        return np.ascontiguousarray(order[:n], np.int64), np.ascontiguousarray(cs[:n], np.float32)
 
-        ivf = faiss.extract_index_ivf(self.index)
-        # every centroid's score, best first, from faiss (a NumPy product here would wait on BLAS threads
-        # while faiss's OpenMP threads spin after the previous search; bench/bench_blas_after_faiss.py)
-        cs, order = ivf.quantizer.search(np.ascontiguousarray(q[None, :], np.float32), ivf.nlist)
-        n = probe_count(cs[0], tau, float(self.probe_delta), self.min_lists)
-        return np.ascontiguousarray(order[0][:n], np.int64), np.ascontiguousarray(cs[0][:n], np.float32)
-
-    def _range_search(self, q: np.ndarray, tau: float, radius: float) -> np.ndarray:
+    def _range_search(self, qs: QueryScores, tau: float, radius: float) -> np.ndarray:
         """Base slots whose coded score is >= ``radius`` in the lists the query probes."""
         import faiss
 
         if self.probe_delta is None:
-            return self.index.range_search(q[None, :], radius)[2]
-        x = np.ascontiguousarray(q[None, :], np.float32)
-        ivf = faiss.extract_index_ivf(self.index)
-        keys, dis = self.probed_lists(q, tau)
-        n = len(keys)
+            return self.index.range_search(qs.x, radius)[2]
+        keys, dis = self.probed_lists(qs, tau)
         res = faiss.RangeSearchResult(1)
-        params = faiss.SearchParametersIVF()
-        params.nprobe = n  # per call: concurrent queries share the index
-        ivf.range_search_preassigned_c(
-            1, faiss.swig_ptr(x), radius, faiss.swig_ptr(keys), faiss.swig_ptr(dis), res, False, params, None
-        )
+        faiss.extract_index_ivf(self.index).range_search_preassigned_c(
+            1, faiss.swig_ptr(qs.x), radius, faiss.swig_ptr(keys), faiss.swig_ptr(dis), res, False,
+            _ivf_params(len(keys)), None,
+        )  # fmt: skip
         n = int(faiss.rev_swig_ptr(res.lims, 2)[1])
         return faiss.rev_swig_ptr(res.labels, n).copy() if n else np.zeros(0, np.int64)
 
-    def _knn_candidates(self, q: np.ndarray, k_rows: int) -> np.ndarray:
+    def _knn_candidates(self, qs: QueryScores, k_rows: int) -> np.ndarray:
         """Mesh codes of (about) the ``k_rows`` best live caption rows of active meshes."""
         if self.probe_delta is not None and self.index.ntotal:
-            codes = self._knn_by_probe(q, k_rows)
+            codes = self._knn_by_probe(qs, k_rows)
             if codes is not None:
                 return codes
         want = k_rows
         while True:
             k = min(want, max(self.index.ntotal, 1))
             if self.index.ntotal:
-                dist, labels = self.index.search(q[None, :], k)
+                dist, labels = self.index.search(qs.x, k)
                 ok = labels[0] >= 0
                 dist, labels = dist[0][ok], labels[0][ok]
                 keep = self.alive[labels] & (self.code_to_idx[self.slot_mesh[labels]] >= 0)
                 dist, labels = dist[keep], labels[keep]
             else:
                 dist, labels = np.zeros(0, np.float32), np.zeros(0, np.int64)
-            ds = self._delta_scores(q)
+            ds = qs.delta
             dl = np.flatnonzero(np.isfinite(ds) & (self.code_to_idx[self.slot_mesh[self.n_base :]] >= 0))
             codes = self.slot_mesh[np.concatenate([labels, dl + self.n_base])]
             if len(labels) + len(dl) >= k_rows or k >= self.index.ntotal:
                 return codes
             want *= 4
 
-    def _knn_by_probe(self, q: np.ndarray, k_rows: int) -> np.ndarray | None:
+    def _knn_by_probe(self, qs: QueryScores, k_rows: int) -> np.ndarray | None:
         """The k-NN candidates through the tau-following probe: the ``k_rows``-th best coded score in the
         query's best lists, minus eps, is at most the ``k_rows``-th best exact score of the whole index, so a
         tau search at that score returns every row of the true top ``k_rows`` whose list it probes. None
         when those lists hold fewer than ``k_rows`` live rows of active meshes (the fixed nprobe serves)."""
         import faiss
 
-        keys, dis = self.probed_lists(q, np.inf)  # the best min_lists lists
+        keys, dis = self.probed_lists(qs, np.inf)  # the best min_lists lists
         k = int(min(self.index.ntotal, max(4 * k_rows, 256)))
         d = np.empty((1, k), np.float32)
         labels = np.empty((1, k), np.int64)
-        params = faiss.SearchParametersIVF()
-        params.nprobe = len(keys)
-        x = np.ascontiguousarray(q[None, :], np.float32)
         faiss.extract_index_ivf(self.index).search_preassigned_c(
-            1, faiss.swig_ptr(x), k, faiss.swig_ptr(keys), faiss.swig_ptr(dis), faiss.swig_ptr(d),
-            faiss.swig_ptr(labels), False, params, None,
+            1, faiss.swig_ptr(qs.x), k, faiss.swig_ptr(keys), faiss.swig_ptr(dis), faiss.swig_ptr(d),
+            faiss.swig_ptr(labels), False, _ivf_params(len(keys)), None,
         )  # fmt: skip
         d, labels = d[0], labels[0]
         ok = labels >= 0
@@ -268,7 +293,7 @@ class IndexSnapshot:
         if keep.sum() < k_rows:
             return None
         tau = float(np.sort(d[keep])[::-1][k_rows - 1]) - self.eps
-        return self._tau_candidates(q, tau)
+        return self._tau_candidates(qs, tau)
 
     def run(
         self, query: np.ndarray, threshold: float | None, fallback_k: int, fallback_unit: str = "captions"
@@ -277,8 +302,9 @@ class IndexSnapshot:
         q = checked_query(query, self.dim, fallback_unit)
         t0 = time.perf_counter()
         k = int(fallback_k)
+        qs = self.query_scores(q)
         if threshold is not None:
-            _, m_idx, s = self._rescore(q, self._tau_candidates(q, threshold))
+            _, m_idx, s = self._rescore(q, self._tau_candidates(qs, threshold))
             m, best = per_mesh_max(m_idx, s)
             keep = best >= np.float32(threshold)
             if keep.any():
@@ -286,7 +312,7 @@ class IndexSnapshot:
                 order = np.lexsort((m, -best))
                 return Stage1Result(m[order], best[order], False, time.perf_counter() - t0)
         # fallback: enough caption rows that the top-k models (and their top-k captions) are among them
-        _, m_idx, s = self._rescore(q, self._knn_candidates(q, 8 * k + 64))
+        _, m_idx, s = self._rescore(q, self._knn_candidates(qs, 8 * k + 64))
         m, best = per_mesh_max(m_idx, s)
         order = np.lexsort((m, -best))[:k]
         m, best = m[order], best[order]
