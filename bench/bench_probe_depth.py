@@ -29,13 +29,14 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     import faiss
 
+    from pipeline.index.layout import base_array
+
     w = open_workdir(a)
     d, man, index, q, taus, sel = w.directory, w.manifest, w.index, w.queries, w.taus, w.tau_queries
     ivf = faiss.extract_index_ivf(index)
     index.nprobe = ivf.nlist
     vecs = np.memmap(d / man["vectors"], np.float32, "r", shape=(man["n_slots"], man["dim"]))
-    with np.load(d / man["base"]["meta"]) as meta:
-        mesh, centroids = meta["mesh_code"], meta["centroids"]
+    mesh, centroids = base_array(d, man, "mesh_code"), base_array(d, man, "centroids")
     print(f"index: {man['codec']}, nlist {ivf.nlist}, eps {man['eps']:.4f}; {len(sel)} tau queries")
     print("| query | tau | tau-set models | deepest list rank needed | delta needed |")
     print("|---|---|---|---|---|")

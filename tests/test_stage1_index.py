@@ -199,7 +199,7 @@ def test_damaged_index_falls_back_with_note_and_fsck_reports(store_path):
         tables = tables_of(store)
         f = open_stage1(store, tables, "index")  # the open rebuilds a damaged index...
         assert f.engine == "index"
-    (directory / read_manifest(directory)["base"]["meta"]).write_bytes(b"junk")
+    (directory / read_manifest(directory)["base"]["arrays"]["mesh_code"]).write_bytes(b"junk")
     import pipeline.index.sync as sync_mod
 
     with Store.open(store_path) as store, pytest.MonkeyPatch.context() as mp:
@@ -445,3 +445,94 @@ def test_fallback_through_the_tau_following_probe_finds_the_exact_top_k(store_pa
                 answers_equal(snap.run(q, 2.0, 10, unit), want)  # tau above every score: the fallback
                 snap.probe_delta = calibrated
                 assert snap.run(q, None, 10, unit).mesh_idx[0] == want.mesh_idx[0]
+
+
+def near_copies(first: int, n: int, seed: int) -> dict[str, dict]:
+    """``n`` new meshes whose captions are noisy copies of the fixture's (no drift: the lists still fit)."""
+    rng = np.random.default_rng(seed)
+    src = list(clustered(300).values())
+    return {
+        f"f{first + i:05d}": {
+            "name": f"f{first + i}",
+            "captions": unit(src[i]["captions"] + 0.05 * rng.standard_normal((8, DIM))),
+        }
+        for i in range(n)
+    }
+
+
+def test_large_delta_folds_into_the_base_and_later_commits_find_its_meshes(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        gen = sync(store, ds, fp, enc).manifest["generation"]
+    commit(store_path, near_copies(0, 60, 1), "20250102T000000000000Z-iiiiii")
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert (rep.action, rep.added) == ("sync", 480) and len(rep.manifest["delta"]["meshes"]) == 60
+    commit(store_path, near_copies(60, 70, 2), "20250103T000000000000Z-jjjjjj")
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert rep.action == "fold", rep.reason
+        man = rep.manifest
+        assert man["generation"] == gen + 1 and man["delta"]["rows"] == 0 and man["delta"]["meshes"] == []
+        assert man["base"]["n_meshes"] == 430 and man["base"]["n_slots"] == 3440
+    # a --force re-run of a mesh that reached the base through the delta replaces its slots
+    redo = {"f00005": {"name": "f5", "captions": unit(np.tile(np.eye(DIM)[7], (8, 1)))}}
+    commit(store_path, redo, "20250104T000000000000Z-kkkkkk")
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert (rep.action, rep.added, rep.removed) == ("sync", 8, 8)
+        assert rep.manifest["delta"]["meshes"] == []  # f00005 was found in the base, not added again
+        tables = tables_of(store)
+        snap, exact = snapshot(store), TextFilter(tables.captions)
+        ids = tables.meshes.column("mesh_id").to_pylist()
+        r = snap.run(np.eye(DIM, dtype=np.float32)[7], 0.99, 10)
+        assert ids[r.mesh_idx[0]] == "f00005"
+        for q in queries(12):
+            answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))
+            answers_equal(snap.run(q, 0.6, 10), exact.run(q, 0.6, 10))
+
+
+def test_index_of_an_older_format_is_reported_and_rebuilt(store_path):
+    import json
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+    path = index_dir(store_path, ds, fp) / "manifest.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "format": 1}))
+    with Store.open(store_path) as store:
+        state, detail = status(store, ds, fp, enc)
+        assert state == "damaged" and "format 1" in detail and "reads 2" in detail
+        rep = sync(store, ds, fp, enc)
+        assert rep.action == "build" and "damaged manifest" in rep.reason
+        assert status(store, ds, fp, enc)[0] == "fresh"
+
+
+@pytest.mark.parametrize("bisect", [True, False])
+def test_mesh_lookup_finds_base_ids_and_numbers_new_ones(monkeypatch, bisect):
+    import pipeline.index.lookup as lookup
+
+    monkeypatch.setattr(lookup, "BISECT_MAX", 10_000 if bisect else 0)
+    base = pa.array(["m-b", "ä-unicode", "m-a", "", "m-c/é", "z"], pa.string())
+    look = lookup.MeshLookup(base, lookup.sorted_order(base), ["d-new"])
+    ids = pa.array(["m-a", "x-unseen", "d-new", "", "z", "x-unseen", "ä-unicode", "m-c/é", "y"])
+    assert look.codes(ids).tolist() == [2, 7, 6, 3, 5, 7, 1, 4, 8]
+    assert look.new == ["d-new", "x-unseen", "y"]
+    assert look.base_codes(pa.array(["m-b", "nope", "m-c"])).tolist() == [0, -1, -1]
+    assert look.codes(pa.array([], pa.string())).tolist() == []
+
+
+def test_live_slots_prefers_an_alive_base_slot_then_the_latest_alive_delta_slot():
+    from pipeline.index.sync import live_slots
+
+    base_keys = np.array([30, 10, 20, 10, 40], np.int64)  # slots 0..4; key 10 twice (slot 1 dead)
+    key_order = np.argsort(base_keys, kind="stable")
+    d_keys = np.array([40, 50, 50, 60, 50], np.int64)  # slots 5..9
+    d_order = np.argsort(d_keys, kind="stable")
+    alive = np.ones(10, bool)
+    alive[[1, 4, 8, 9]] = False  # key 40's base slot died (replaced in the delta); 50's latest is dead
+    got = live_slots(
+        np.array([10, 20, 40, 50, 60, 70, 30], np.int64),
+        base_keys[key_order], key_order, d_keys[d_order], d_order, alive, 5,
+    )
+    assert got.tolist() == [3, 2, 5, 7, -1, -1, 0]

@@ -29,6 +29,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from pipeline.index.lookup import sorted_order
+
 #: 4-bit codes above this many rows (8-bit below)
 SQ4_ROWS = 4_000_000
 #: nlist = NLIST_PER_SQRT x sqrt(rows); a query probes NPROBE_FRACTION of the lists (at least MIN_NPROBE).
@@ -277,48 +279,49 @@ def write_base(
             "added_rows": 0,
             "added_residual_sum": 0.0,
         }
-    faiss_name, meta_name, mesh_name = (
-        f"base-{gen:06d}.faiss",
-        f"base-{gen:06d}.npz",
-        f"meshes-{gen:06d}.arrow",
-    )
+    faiss_name, mesh_name = f"base-{gen:06d}.faiss", f"meshes-{gen:06d}.arrow"
     _atomic(directory / faiss_name, lambda p: faiss.write_index(index, str(p)))
     keys = key64(mesh_code, view)
     key_order = np.argsort(keys, kind="stable").astype(np.int64)
     by_mesh = np.argsort(mesh_code, kind="stable").astype(np.int64)
     counts = np.bincount(mesh_code, minlength=len(mesh_ids)) if n else np.zeros(len(mesh_ids), np.int64)
     mesh_start = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
-
-    def save_meta(p):
-        with open(p, "wb") as f:
-            np.savez(
-                f,
-                mesh_code=mesh_code,
-                view=view,
-                run_code=run_code,
-                sorted_keys=keys[key_order],
-                key_order=key_order,
-                by_mesh=by_mesh,
-                mesh_start=mesh_start,
-                centroids=centroids_of(index),
-            )
-
-    _atomic(directory / meta_name, save_meta)
+    ids = pa.array(mesh_ids, pa.string())
+    arrays = {
+        "mesh_code": np.asarray(mesh_code, np.int32),
+        "view": np.asarray(view, np.int16),
+        "run_code": np.asarray(run_code, np.int32),
+        "sorted_keys": keys[key_order],
+        "key_order": key_order,
+        "by_mesh": by_mesh,
+        "mesh_start": mesh_start,
+        "centroids": centroids_of(index),
+        "mesh_sort": sorted_order(ids),
+    }
+    names = {}
+    for name, arr in arrays.items():
+        names[name] = f"base-{gen:06d}-{name}.npy"
+        _atomic(directory / names[name], lambda p, a=arr: _save_npy(p, a))
 
     def save_meshes(p):
         with pa.OSFile(str(p), "wb") as sink, ipc.new_file(sink, pa.schema([("mesh_id", pa.string())])) as w:
-            w.write_table(pa.table({"mesh_id": pa.array(mesh_ids, pa.string())}))
+            w.write_table(pa.table({"mesh_id": ids}))
 
     _atomic(directory / mesh_name, save_meshes)
     out["base"] = {
         "faiss": faiss_name,
-        "meta": meta_name,
+        "arrays": names,
         "meshes": mesh_name,
         "n_slots": n,
         "ntotal": int(index.ntotal),
         "n_meshes": len(mesh_ids),
     }
     return out
+
+
+def _save_npy(path: Path, arr: np.ndarray) -> None:
+    with open(path, "wb") as f:
+        np.save(f, np.ascontiguousarray(arr), allow_pickle=False)
 
 
 def write_delta(

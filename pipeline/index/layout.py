@@ -6,8 +6,10 @@ at one fingerprint:
 * ``vectors-<n>.f32``: the float32 caption vectors, one row per *slot*, append-only (a replaced or
   removed row keeps its slot, marked dead): exact rescoring reads survivors' rows from it, memory-mapped,
   so the floats never have to be resident;
-* ``base-<g>.faiss`` + ``base-<g>.npz`` + ``meshes-<g>.arrow``: the IVF index over the base slots, and per
-  base slot its mesh code, view index and run code (plus the slot order by key and by mesh);
+* ``base-<g>.faiss`` + ``base-<g>-<array>.npy`` + ``meshes-<g>.arrow``: the IVF index over the base slots,
+  and per base slot its mesh code, view index and run code (plus the slot order by key and by mesh, the
+  centroids and the mesh ids' sorted order), one plain ``.npy`` per array so that a sync memory-maps them
+  and reads only the pages its keys touch;
 * ``delta-<k>.npz``: slots appended since the base was written, dead slots, meshes new since the base;
 * ``manifest.json`` (replaced atomically, last): the Delta version and data files covered, encoder id,
   fingerprint, codec, error bound, drift statistics and the size of every file above.
@@ -27,7 +29,7 @@ from pathlib import Path
 INDEX_DIR = ("_index", "stage1")
 MANIFEST = "manifest.json"
 LOCK = "sync.lock"
-FORMAT = 1
+FORMAT = 2  # 2: the base's arrays are separate .npy files (1: one .npz)
 
 
 def index_dir(store_root: Path, dataset: str, fingerprint: str) -> Path:
@@ -44,9 +46,16 @@ def read_manifest(directory: Path) -> dict | None:
         text = path.read_text()
     except FileNotFoundError:
         return None
-    man = json.loads(text)
-    if not isinstance(man, dict) or man.get("format") != FORMAT:
-        raise ValueError(f"{path}: not a stage-1 index manifest of format {FORMAT}")
+    try:
+        man = json.loads(text)
+    except ValueError as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(man, dict):
+        raise ValueError(f"{path}: not a stage-1 index manifest")
+    if man.get("format") != FORMAT:
+        raise ValueError(
+            f"{path}: an index of format {man.get('format')!r}, this version reads {FORMAT} (a sync rebuilds it)"
+        )
     return man
 
 
@@ -62,7 +71,14 @@ def write_manifest(directory: Path, man: dict) -> None:
 def named_files(man: dict) -> list[str]:
     """The files a manifest names."""
     base = man["base"]
-    return [man["vectors"], base["faiss"], base["meta"], base["meshes"], man["delta"]["file"]]
+    return [man["vectors"], base["faiss"], *base["arrays"].values(), base["meshes"], man["delta"]["file"]]
+
+
+def base_array(directory: Path, man: dict, name: str, *, mmap: bool = True):
+    """One array of the base's slot metadata, memory-mapped read-only unless ``mmap`` is false."""
+    import numpy as np
+
+    return np.load(directory / man["base"]["arrays"][name], mmap_mode="r" if mmap else None, allow_pickle=False)
 
 
 def check_files(directory: Path, man: dict) -> str | None:
@@ -92,5 +108,5 @@ def remove_unnamed(directory: Path, keep: set[str]) -> None:
     for p in directory.iterdir():
         if p.name in keep or p.name in (MANIFEST, LOCK) or p.name.endswith(".partial"):
             continue
-        if p.suffix in (".faiss", ".npz", ".arrow", ".f32"):
+        if p.suffix in (".faiss", ".npz", ".npy", ".arrow", ".f32"):
             p.unlink(missing_ok=True)

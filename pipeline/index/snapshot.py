@@ -29,7 +29,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from pipeline.index.layout import check_files
+from pipeline.index.layout import base_array, check_files
 from pipeline.query.stage1 import Stage1Result, checked_query
 
 
@@ -128,10 +128,9 @@ class IndexSnapshot:
         self.min_lists = int(probe.get("min_lists", 1))
         try:
             self.index = faiss.read_index(str(directory / man["base"]["faiss"]))
-            with np.load(directory / man["base"]["meta"]) as meta:
-                base_mesh = meta["mesh_code"].astype(np.int32)
-                self.by_mesh = meta["by_mesh"].astype(np.int64)
-                self.mesh_start = meta["mesh_start"].astype(np.int64)
+            base_mesh = base_array(directory, man, "mesh_code", mmap=False).astype(np.int32, copy=False)
+            self.by_mesh = base_array(directory, man, "by_mesh", mmap=False).astype(np.int64, copy=False)
+            self.mesh_start = base_array(directory, man, "mesh_start", mmap=False).astype(np.int64, copy=False)
             with np.load(directory / man["delta"]["file"], allow_pickle=False) as d:
                 d_mesh = d["mesh_code"].astype(np.int32)
                 dead = d["dead"].astype(np.int64)

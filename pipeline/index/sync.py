@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline.index.build import (
@@ -42,7 +41,17 @@ from pipeline.index.build import (
     write_base,
     write_delta,
 )
-from pipeline.index.layout import LOCK, check_files, index_dir, read_manifest, remove_unnamed, write_manifest
+from pipeline.index.layout import (
+    LOCK,
+    base_array,
+    check_files,
+    index_dir,
+    named_files,
+    read_manifest,
+    remove_unnamed,
+    write_manifest,
+)
+from pipeline.index.lookup import MeshLookup, read_ids
 
 FOLD_ROWS = 250_000
 FOLD_FRACTION = 0.05
@@ -50,6 +59,7 @@ DRIFT_MAX = 1.25
 DRIFT_MIN_FRACTION = 0.01
 GROWTH_MAX = 2.0
 DEAD_MAX = 0.3
+DRIFT_SAMPLE = 2048  # added rows the drift statistic is measured on, evenly spaced
 
 
 @dataclass
@@ -92,18 +102,16 @@ def sync(store, dataset: str, fp: str, encoder_id: str, *, rebuild: bool = False
             problem = check_files(directory, man) if man else None
         except (ValueError, KeyError, TypeError) as exc:
             man, problem = None, f"damaged manifest ({exc})"
-        why = (
-            "forced"
-            if rebuild
-            else "no index"
-            if man is None
-            else problem
-            or (
-                "encoder or fingerprint changed"
-                if (man["encoder_id"], man["fingerprint"]) != (encoder_id, fp)
-                else ""
-            )
-        )
+        if rebuild:
+            why = "forced"
+        elif problem:
+            why = problem
+        elif man is None:
+            why = "no index"
+        elif (man["encoder_id"], man["fingerprint"]) != (encoder_id, fp):
+            why = "encoder or fingerprint changed"
+        else:
+            why = ""
         if why:
             man = build(store, dataset, fp, encoder_id, directory)
             return SyncReport("build", man["n_slots"], 0, time.perf_counter() - t0, why, man)
@@ -118,6 +126,9 @@ def sync(store, dataset: str, fp: str, encoder_id: str, *, rebuild: bool = False
 
 
 def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
+    """Apply the version diff. The base's slot arrays stay memory-mapped: a commit of a few meshes reads
+    the pages its keys touch, not the base's hundreds of megabytes; only a removal or a fold reads them
+    whole."""
     import faiss
 
     fp = man["fingerprint"]
@@ -125,44 +136,38 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
     covered = set(man["files"])
     added = [current[n] for n in current if n not in covered]
     removed = covered - current.keys()
-    base = np.load(directory / man["base"]["meta"])
-    d = np.load(directory / man["delta"]["file"])
-    base_ids = _read_meshes(directory / man["base"]["meshes"])
-    n_base_meshes = len(base_ids)
-    new_meshes = list(man["delta"]["meshes"])
-    slot_mesh = np.concatenate([base["mesh_code"], d["mesh_code"]]).astype(np.int32)
-    slot_view = np.concatenate([base["view"], d["view"]]).astype(np.int16)
-    slot_run = np.concatenate([base["run_code"], d["run_code"]]).astype(np.int32)
+    base_run = base_array(directory, man, "run_code")
+    sorted_keys, key_order = base_array(directory, man, "sorted_keys"), base_array(directory, man, "key_order")
+    with np.load(directory / man["delta"]["file"], allow_pickle=False) as d:
+        d_mesh, d_view, d_run = (d[k] for k in ("mesh_code", "view", "run_code"))
+        d_dead = d["dead"]
+    meshes = MeshLookup(
+        read_ids(directory / man["base"]["meshes"]),
+        base_array(directory, man, "mesh_sort"),
+        man["delta"]["meshes"],
+    )
     n_base = int(man["base"]["n_slots"])
-    alive = np.ones(len(slot_mesh), bool)
-    alive[d["dead"]] = False
+    alive = np.ones(n_base + len(d_mesh), bool)
+    alive[d_dead] = False
     runs = list(man["runs"])
     run_code = {r: i for i, r in enumerate(runs)}
-    sorted_keys, key_order = base["sorted_keys"], base["key_order"]
-    d_keys = key64(d["mesh_code"], d["view"])
+    d_keys = key64(d_mesh, d_view)
 
-    def codes_of(ids: pa.Array) -> np.ndarray:
-        out = pc.index_in(ids, value_set=base_ids).fill_null(-1).to_numpy().astype(np.int64)
-        extra = {m: n_base_meshes + i for i, m in enumerate(new_meshes)}
-        missing = np.flatnonzero(out < 0)
-        for i in missing:
-            m = ids[int(i)].as_py()
-            if m not in extra:
-                extra[m] = n_base_meshes + len(new_meshes)
-                new_meshes.append(m)
-            out[i] = extra[m]
+    codes_of = meshes.codes
+
+    d_order = np.argsort(d_keys, kind="stable")
+    d_sorted = d_keys[d_order]
+
+    def slots_of(keys: np.ndarray) -> np.ndarray:
+        return live_slots(keys, sorted_keys, key_order, d_sorted, d_order, alive, n_base)
+
+    def runs_of(slots: np.ndarray) -> np.ndarray:
+        """Run code of every slot (-1 where the slot is -1)."""
+        out = np.full(len(slots), -1, np.int64)
+        b, d = (slots >= 0) & (slots < n_base), slots >= n_base
+        out[b] = base_run[slots[b]]
+        out[d] = d_run[slots[d] - n_base]
         return out
-
-    def live_slot(k: int) -> int:
-        """The live slot of key ``k`` (-1 when none)."""
-        lo, hi = np.searchsorted(sorted_keys, k, "left"), np.searchsorted(sorted_keys, k, "right")
-        for s in key_order[lo:hi]:
-            if alive[s]:
-                return int(s)
-        for j in np.flatnonzero(d_keys == k)[::-1]:
-            if alive[n_base + j]:
-                return int(n_base + j)
-        return -1
 
     def later(a: str, b_code: int) -> bool:
         return a > runs[b_code]
@@ -172,24 +177,24 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
     pending: dict[int, int] = {}  # key -> index in new_rows (latest run within this sync)
 
     def offer(codes, views, run_ids, x):
-        for c, v, r, vec in zip(codes, views, run_ids, x, strict=True):
-            k = int(key64(np.array([c]), np.array([v]))[0])
+        keys = key64(codes, views)
+        indexed = runs_of(slots_of(keys))  # run code of each key's live slot (-1: none)
+        for i, (k, r) in enumerate(zip(keys.tolist(), run_ids, strict=True)):
             j = pending.get(k)
             if j is not None:
                 if r > runs[new_rows[j][2]]:
                     rc = run_code.setdefault(r, len(runs))
                     if rc == len(runs):
                         runs.append(r)
-                    new_rows[j] = (int(c), int(v), rc, vec)
+                    new_rows[j] = (int(codes[i]), int(views[i]), rc, x[i])
                 continue
-            s = live_slot(k)
-            if s >= 0 and not later(r, int(slot_run[s])):
+            if indexed[i] >= 0 and not later(r, int(indexed[i])):
                 continue  # already indexed at this run (compaction) or an older run
             rc = run_code.setdefault(r, len(runs))
             if rc == len(runs):
                 runs.append(r)
             pending[k] = len(new_rows)
-            new_rows.append((int(c), int(v), rc, vec))
+            new_rows.append((int(codes[i]), int(views[i]), rc, x[i]))
 
     for t in stream_rows(store, dataset, fp, added):
         offer(
@@ -201,7 +206,9 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
     if removed:
         # which keys (at which run) the table still holds: keys only, no vectors
         keep = _current_keys(store, dataset, fp, codes_of)
-        slot_keys = key64(slot_mesh, slot_view)
+        base_keys = key64(base_array(directory, man, "mesh_code"), base_array(directory, man, "view"))
+        slot_keys = np.concatenate([base_keys, d_keys])
+        slot_run = np.concatenate([base_run, d_run])
         run_arr = np.asarray(runs, dtype=object)
         cur = dict(zip(keep[0].tolist(), keep[1], strict=True))
         for s in np.flatnonzero(alive):
@@ -212,12 +219,12 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
             elif r != run_arr[slot_run[s]] and int(slot_keys[s]) not in pending:
                 resurfaced = True  # the indexed run was removed, an older row is latest again
     # replace: old live slots of keys that get a new row die
-    for k in pending:
-        s = live_slot(k)
-        if s >= 0:
-            alive[s] = False
-            removed_n += 1
-    n_slots = len(slot_mesh)
+    if pending:
+        old = slots_of(np.fromiter(pending, np.int64, len(pending)))
+        old = old[old >= 0]
+        alive[old] = False
+        removed_n += len(old)
+    n_slots = n_base + len(d_mesh)
     if new_rows:
         x = np.stack([r[3] for r in new_rows]).astype(np.float32)
         with open(directory / man["vectors"], "r+b") as f:
@@ -226,24 +233,19 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
             f.write(np.ascontiguousarray(x).tobytes())
             f.flush()
             os.fsync(f.fileno())
-        slot_mesh = np.concatenate([slot_mesh, np.array([r[0] for r in new_rows], np.int32)])
-        slot_view = np.concatenate([slot_view, np.array([r[1] for r in new_rows], np.int16)])
-        slot_run = np.concatenate([slot_run, np.array([r[2] for r in new_rows], np.int32)])
+        d_mesh = np.concatenate([d_mesh, np.array([r[0] for r in new_rows], np.int32)])
+        d_view = np.concatenate([d_view, np.array([r[1] for r in new_rows], np.int16)])
+        d_run = np.concatenate([d_run, np.array([r[2] for r in new_rows], np.int32)])
         alive = np.concatenate([alive, np.ones(len(new_rows), bool)])
         drift = dict(man["drift"])
         drift["added_rows"] += len(new_rows)
-        drift["added_residual_sum"] += residual_of(base["centroids"], x) * len(new_rows)
+        sample = x[np.linspace(0, len(x) - 1, min(len(x), DRIFT_SAMPLE)).astype(np.int64)]
+        drift["added_residual_sum"] += residual_of(base_array(directory, man, "centroids"), sample) * len(x)
         man["drift"] = drift
     index = None  # the IVF file is read only when the base is rewritten
-    n_slots = len(slot_mesh)
+    n_slots = n_base + len(d_mesh)
     dead = np.flatnonzero(~alive)
-    prev_names = {
-        man["base"]["faiss"],
-        man["base"]["meta"],
-        man["base"]["meshes"],
-        man["delta"]["file"],
-        man["vectors"],
-    }
+    prev_names = set(named_files(man))
     man.update(
         {"delta_version": store.version(dataset), "files": sorted(current), "n_slots": n_slots, "runs": runs}
     )
@@ -267,7 +269,7 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
         return SyncReport("rebuild", len(new_rows), removed_n, 0.0, reason, man2)
     if action in ("retrain", "fold"):
         man["generation"] += 1
-        ids = base_ids.to_pylist() + new_meshes
+        ids = meshes.base.to_pylist() + meshes.new
         vecs = np.memmap(directory / man["vectors"], np.float32, "r", shape=(n_slots, man["dim"]))
         if index is None:
             index = faiss.read_index(str(directory / man["base"]["faiss"]))
@@ -276,9 +278,9 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
                 directory,
                 man,
                 vecs,
-                slot_mesh,
-                slot_view,
-                slot_run,
+                np.concatenate([base_array(directory, man, "mesh_code"), d_mesh]),
+                np.concatenate([base_array(directory, man, "view"), d_view]),
+                np.concatenate([base_run, d_run]),
                 dead,
                 ids,
                 train=action == "retrain",
@@ -291,16 +293,48 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
         man["delta"] = write_delta(
             directory,
             man["generation"],
-            slot_mesh[n_base:],
-            slot_view[n_base:],
-            slot_run[n_base:],
+            d_mesh,
+            d_view,
+            d_run,
             dead,
-            new_meshes,
+            meshes.new,
             seq,
         )
     write_manifest(directory, man)
     remove_unnamed(directory, prev_names)
     return SyncReport(action, len(new_rows), removed_n, 0.0, reason, man)
+
+
+def live_slots(
+    keys: np.ndarray,
+    sorted_keys: np.ndarray,
+    key_order: np.ndarray,
+    d_sorted: np.ndarray,
+    d_order: np.ndarray,
+    alive: np.ndarray,
+    n_base: int,
+) -> np.ndarray:
+    """The live slot of every key (-1 when none): an alive base slot first, else the key's latest alive
+    delta slot. ``sorted_keys``/``key_order`` are the base's keys sorted and their slots (memory-mapped: a
+    binary search touches a few pages per key); ``d_sorted``/``d_order`` the same for the delta."""
+    out = np.full(len(keys), -1, np.int64)
+    lo, hi = np.searchsorted(sorted_keys, keys, "left"), np.searchsorted(sorted_keys, keys, "right")
+    todo, j = np.flatnonzero(hi > lo), 0
+    while len(todo):  # usually one base slot per key; a replaced key keeps its dead ones
+        s = np.asarray(key_order[lo[todo] + j], np.int64)
+        ok = alive[s]
+        out[todo[ok]] = s[ok]
+        j += 1
+        todo = todo[~ok & (lo[todo] + j < hi[todo])]
+    lo, hi = np.searchsorted(d_sorted, keys, "left"), np.searchsorted(d_sorted, keys, "right")
+    todo, j = np.flatnonzero((out < 0) & (hi > lo)), 1
+    while len(todo):
+        s = n_base + d_order[hi[todo] - j]
+        ok = alive[s]
+        out[todo[ok]] = s[ok]
+        j += 1
+        todo = todo[~ok & (hi[todo] - j >= lo[todo])]
+    return out
 
 
 def _current_keys(store, dataset: str, fp: str, codes_of) -> tuple[np.ndarray, list[str]]:
@@ -313,18 +347,14 @@ def _current_keys(store, dataset: str, fp: str, codes_of) -> tuple[np.ndarray, l
     return key64(codes, t.column("view_index").to_numpy()), t.column("run_id").to_pylist()
 
 
-def _read_meshes(path: Path) -> pa.Array:
-    import pyarrow.ipc as ipc
-
-    return ipc.open_file(str(path)).read_all().column(0).combine_chunks()
-
-
 def status(store, dataset: str, fp: str, encoder_id: str) -> tuple[str, str]:
     """(state, detail): state is "fresh", "stale", "missing" or "damaged" for the store's pinned version."""
     directory = index_dir(store.root, dataset, fp)
     try:
         man = read_manifest(directory)
-    except (ValueError, OSError) as exc:
+    except ValueError as exc:
+        return "damaged", str(exc)[:300]
+    except OSError as exc:
         return "damaged", f"{directory / 'manifest.json'}: {str(exc)[:100]}"
     if man is None:
         return "missing", f"no stage-1 index under {directory}"
