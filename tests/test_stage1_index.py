@@ -536,3 +536,34 @@ def test_live_slots_prefers_an_alive_base_slot_then_the_latest_alive_delta_slot(
         base_keys[key_order], key_order, d_keys[d_order], d_order, alive, 5,
     )
     assert got.tolist() == [3, 2, 5, 7, -1, -1, 0]
+
+
+def test_rows_whose_file_left_the_table_die_and_a_resurfaced_older_row_rebuilds(store_path):
+    from deltalake import DeltaTable
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+        v0 = store.version(ds)
+    commit(store_path, {"gone-mesh": {"name": "gone", "captions": unit(np.tile(np.eye(DIM)[2], (8, 1)))}},
+           "20250102T000000000000Z-llllll")
+    with Store.open(store_path) as store:
+        assert sync(store, ds, fp, enc).added == 8
+    DeltaTable(str(store_path / ds)).restore(v0)  # the new mesh's file leaves the table
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert (rep.action, rep.added, rep.removed) == ("sync", 0, 8)
+        q = np.eye(DIM, dtype=np.float32)[2]
+        answers_equal(snapshot(store).run(q, 0.9, 10), TextFilter(tables_of(store).captions).run(q, 0.9, 10))
+        v1 = store.version(ds)
+    redo = {"m00007": {"name": "m7", "captions": unit(np.tile(np.eye(DIM)[5], (8, 1)))}}
+    commit(store_path, redo, "20250103T000000000000Z-mmmmmm")  # a --force re-run replaces m00007's slots
+    with Store.open(store_path) as store:
+        assert (sync(store, ds, fp, enc).removed) == 8
+    DeltaTable(str(store_path / ds)).restore(v1)  # the re-run leaves: m00007's first run is latest again
+    with Store.open(store_path) as store:
+        rep = sync(store, ds, fp, enc)
+        assert rep.action == "rebuild" and "older row" in rep.reason
+        snap, exact = snapshot(store), TextFilter(tables_of(store).captions)
+        for q in queries(8):
+            answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))

@@ -205,19 +205,19 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
         )
     if removed:
         # which keys (at which run) the table still holds: keys only, no vectors
-        keep = _current_keys(store, dataset, fp, codes_of)
+        cur_keys, cur_run = _current_keys(store, dataset, fp, codes_of, run_code)
         base_keys = key64(base_array(directory, man, "mesh_code"), base_array(directory, man, "view"))
         slot_keys = np.concatenate([base_keys, d_keys])
         slot_run = np.concatenate([base_run, d_run])
-        run_arr = np.asarray(runs, dtype=object)
-        cur = dict(zip(keep[0].tolist(), keep[1], strict=True))
-        for s in np.flatnonzero(alive):
-            r = cur.get(int(slot_keys[s]))
-            if r is None:
-                alive[s] = False
-                removed_n += 1
-            elif r != run_arr[slot_run[s]] and int(slot_keys[s]) not in pending:
-                resurfaced = True  # the indexed run was removed, an older row is latest again
+        live = np.flatnonzero(alive)
+        pos = np.minimum(np.searchsorted(cur_keys, slot_keys[live]), max(len(cur_keys) - 1, 0))
+        found = cur_keys[pos] == slot_keys[live] if len(cur_keys) else np.zeros(len(live), bool)
+        alive[live[~found]] = False
+        removed_n += int((~found).sum())
+        stay, pos = live[found], pos[found]
+        other = stay[cur_run[pos] != slot_run[stay]]  # the table's latest row of the key is another run
+        if len(other) and not np.isin(slot_keys[other], np.fromiter(pending, np.int64, len(pending))).all():
+            resurfaced = True  # the indexed run was removed, an older row is latest again
     # replace: old live slots of keys that get a new row die
     if pending:
         old = slots_of(np.fromiter(pending, np.int64, len(pending)))
@@ -337,14 +337,22 @@ def live_slots(
     return out
 
 
-def _current_keys(store, dataset: str, fp: str, codes_of) -> tuple[np.ndarray, list[str]]:
-    """(key64, latest run_id) of every key the table holds at ``fp``."""
-    from pipeline.store import latest_rows
-
+def _current_keys(store, dataset: str, fp: str, codes_of, run_code: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Every key the table holds at ``fp`` (key64, sorted) and the run code of its latest row (-1 for a
+    run ``run_code`` lacks); the latest row is the highest ``run_id``, the later-written one on ties, as in
+    :func:`pipeline.store.latest_rows`."""
     t = store.read(dataset, columns=["mesh_id", "view_index", "run_id"], filter=pc.field("fingerprint") == fp)
-    t = latest_rows(t, ["mesh_id", "view_index"])
-    codes = codes_of(t.column("mesh_id").combine_chunks())
-    return key64(codes, t.column("view_index").to_numpy()), t.column("run_id").to_pylist()
+    keys = key64(codes_of(t.column("mesh_id").combine_chunks()), t.column("view_index").to_numpy())
+    runs = pc.dictionary_encode(t.column("run_id").combine_chunks())
+    names = runs.dictionary.to_pylist()
+    rank = np.argsort(np.argsort(np.array(names, dtype=object), kind="stable"))
+    idx = runs.indices.to_numpy(zero_copy_only=False)
+    order = np.lexsort((rank[idx], keys)) if len(keys) else np.zeros(0, np.int64)  # stable: ties by position
+    k = keys[order]
+    last = np.ones(len(k), bool)
+    last[:-1] = k[1:] != k[:-1]
+    code = np.array([run_code.get(n, -1) for n in names], np.int64)
+    return k[last], code[idx[order[last]]] if len(k) else np.zeros(0, np.int64)
 
 
 def status(store, dataset: str, fp: str, encoder_id: str) -> tuple[str, str]:
