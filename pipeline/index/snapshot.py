@@ -30,6 +30,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from pipeline.index.layout import base_array, check_files
+from pipeline.index.lookup import read_ids
 from pipeline.query.stage1 import Stage1Result, checked_query
 
 
@@ -134,9 +135,7 @@ class IndexSnapshot:
             with np.load(directory / man["delta"]["file"], allow_pickle=False) as d:
                 d_mesh = d["mesh_code"].astype(np.int32)
                 dead = d["dead"].astype(np.int64)
-            import pyarrow.ipc as ipc
-
-            base_ids = ipc.open_file(str(directory / man["base"]["meshes"])).read_all().column(0)
+            base_ids = read_ids(directory / man["base"]["meshes"])
         except (OSError, RuntimeError, ValueError, KeyError, pa.ArrowException) as exc:
             raise IndexDamaged(f"{directory}: {str(exc).splitlines()[0][:120]}") from None
         n_base, n_slots = int(man["base"]["n_slots"]), int(man["n_slots"])
@@ -152,7 +151,7 @@ class IndexSnapshot:
         if q is not None and hasattr(faiss.downcast_index(q), "hnsw"):
             faiss.downcast_index(q).hnsw.efSearch = max(64, 2 * self.nprobe)
         self.n_base, self.n_slots = n_base, n_slots
-        all_ids = pa.concat_arrays([base_ids.combine_chunks(), pa.array(man["delta"]["meshes"], pa.string())])
+        all_ids = pa.concat_arrays([base_ids, pa.array(man["delta"]["meshes"], pa.string())])
         self.code_to_idx = (
             pc.index_in(all_ids, value_set=active_ids).fill_null(-1).to_numpy().astype(np.int32)
         )

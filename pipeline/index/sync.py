@@ -152,14 +152,19 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
     runs = list(man["runs"])
     run_code = {r: i for i, r in enumerate(runs)}
     d_keys = key64(d_mesh, d_view)
-
-    codes_of = meshes.codes
-
     d_order = np.argsort(d_keys, kind="stable")
     d_sorted = d_keys[d_order]
 
     def slots_of(keys: np.ndarray) -> np.ndarray:
         return live_slots(keys, sorted_keys, key_order, d_sorted, d_order, alive, n_base)
+
+    def every_slot() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(mesh code, view, run code) of every slot, base then delta: the base's arrays read whole."""
+        return (
+            np.concatenate([base_array(directory, man, "mesh_code"), d_mesh]),
+            np.concatenate([base_array(directory, man, "view"), d_view]),
+            np.concatenate([base_run, d_run]),
+        )
 
     def runs_of(slots: np.ndarray) -> np.ndarray:
         """Run code of every slot (-1 where the slot is -1)."""
@@ -198,17 +203,16 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
 
     for t in stream_rows(store, dataset, fp, added):
         offer(
-            codes_of(t.column("mesh_id").combine_chunks()),
+            meshes.codes(t.column("mesh_id").combine_chunks()),
             t.column("view_index").to_numpy(),
             t.column("run_id").to_pylist(),
             vectors_of(t),
         )
     if removed:
         # which keys (at which run) the table still holds: keys only, no vectors
-        cur_keys, cur_run = _current_keys(store, dataset, fp, codes_of, run_code)
-        base_keys = key64(base_array(directory, man, "mesh_code"), base_array(directory, man, "view"))
-        slot_keys = np.concatenate([base_keys, d_keys])
-        slot_run = np.concatenate([base_run, d_run])
+        cur_keys, cur_run = _current_keys(store, dataset, fp, meshes.codes, run_code)
+        slot_mesh, slot_view, slot_run = every_slot()  # before this sync's new rows
+        slot_keys = key64(slot_mesh, slot_view)
         live = np.flatnonzero(alive)
         pos = np.minimum(np.searchsorted(cur_keys, slot_keys[live]), max(len(cur_keys) - 1, 0))
         found = cur_keys[pos] == slot_keys[live] if len(cur_keys) else np.zeros(len(live), bool)
@@ -278,9 +282,7 @@ def _apply(store, dataset: str, directory: Path, man: dict) -> SyncReport:
                 directory,
                 man,
                 vecs,
-                np.concatenate([base_array(directory, man, "mesh_code"), d_mesh]),
-                np.concatenate([base_array(directory, man, "view"), d_view]),
-                np.concatenate([base_run, d_run]),
+                *every_slot(),
                 dead,
                 ids,
                 train=action == "retrain",
@@ -347,12 +349,12 @@ def _current_keys(store, dataset: str, fp: str, codes_of, run_code: dict) -> tup
     names = runs.dictionary.to_pylist()
     rank = np.argsort(np.argsort(np.array(names, dtype=object), kind="stable"))
     idx = runs.indices.to_numpy(zero_copy_only=False)
-    order = np.lexsort((rank[idx], keys)) if len(keys) else np.zeros(0, np.int64)  # stable: ties by position
+    order = np.lexsort((rank[idx], keys))  # stable: ties by position
     k = keys[order]
     last = np.ones(len(k), bool)
     last[:-1] = k[1:] != k[:-1]
     code = np.array([run_code.get(n, -1) for n in names], np.int64)
-    return k[last], code[idx[order[last]]] if len(k) else np.zeros(0, np.int64)
+    return k[last], code[idx[order[last]]]
 
 
 def status(store, dataset: str, fp: str, encoder_id: str) -> tuple[str, str]:
