@@ -567,3 +567,53 @@ def test_rows_whose_file_left_the_table_die_and_a_resurfaced_older_row_rebuilds(
         snap, exact = snapshot(store), TextFilter(tables_of(store).captions)
         for q in queries(8):
             answers_equal(snap.run(q, 1.5, 10), exact.run(q, 1.5, 10))
+
+
+def test_a_failed_build_leaves_no_partial_file_and_the_old_index_serves(store_path, monkeypatch):
+    import errno
+
+    import pipeline.index.build as b
+
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+    directory = index_dir(store_path, ds, fp)
+    real = b.vectors_of
+
+    def full_disk(t):
+        if len(list(directory.glob("*.partial"))):  # the new vector file is being written
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(t)
+
+    monkeypatch.setattr(b, "vectors_of", full_disk)
+    with Store.open(store_path) as store:
+        with pytest.raises(OSError, match="No space"):
+            sync(store, ds, fp, enc, rebuild=True)
+        assert not list(directory.glob("*.partial"))
+        assert status(store, ds, fp, enc)[0] == "fresh"  # the manifest still names the old, whole files
+        q = queries(1)[0]
+        answers_equal(snapshot(store).run(q, 0.5, 10), TextFilter(tables_of(store).captions).run(q, 0.5, 10))
+
+
+def test_a_build_first_removes_what_a_killed_writer_left(store_path):
+    with Store.open(store_path) as store:
+        ds, fp, enc = text_dataset(store, latest_onboarding(store))
+        sync(store, ds, fp, enc)
+    directory = index_dir(store_path, ds, fp)
+    left = [directory / "vectors-000009.f32.partial", directory / "base-000009.faiss"]
+    for p in left:
+        p.write_bytes(b"x" * 1024)
+    seen = {}
+    import pipeline.index.build as b
+
+    real = b.stream_rows
+
+    def watch(*a, **k):  # while the new build streams its rows, the leftovers must already be gone
+        seen["left"] = [p.name for p in left if p.exists()]
+        yield from real(*a, **k)
+
+    with Store.open(store_path) as store, pytest.MonkeyPatch.context() as mp:
+        mp.setattr(b, "stream_rows", watch)
+        assert sync(store, ds, fp, enc, rebuild=True).action == "build"
+        assert seen["left"] == [] and not any(p.exists() for p in left)
+        assert status(store, ds, fp, enc)[0] == "fresh"

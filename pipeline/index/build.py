@@ -150,20 +150,24 @@ def build(
     runs: dict[str, int] = {}
     mesh_parts, view_parts, run_parts = [], [], []
     dim = None
-    tmp = directory / f"{vec_name}.partial"
-    with open(tmp, "wb") as f:
-        for t in stream_rows(store, dataset, fp):
-            x = vectors_of(t)
-            dim = x.shape[1]
-            f.write(np.ascontiguousarray(x).tobytes())
-            mesh_parts.append(meshes.encode(t.column("mesh_id")))
-            view_parts.append(t.column("view_index").to_numpy().astype(np.int16))
-            run_parts.append(
-                np.asarray([runs.setdefault(r, len(runs)) for r in t.column("run_id").to_pylist()], np.int32)
-            )
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, directory / vec_name)
+
+    def write_vectors(path: Path) -> None:
+        nonlocal dim
+        with open(path, "wb") as f:
+            for t in stream_rows(store, dataset, fp):
+                x = vectors_of(t)
+                dim = x.shape[1]
+                f.write(np.ascontiguousarray(x).tobytes())
+                mesh_parts.append(meshes.encode(t.column("mesh_id")))
+                view_parts.append(t.column("view_index").to_numpy().astype(np.int16))
+                run_parts.append(
+                    np.asarray([runs.setdefault(r, len(runs)) for r in t.column("run_id").to_pylist()], np.int32)
+                )
+            f.flush()
+            os.fsync(f.fileno())
+
+    remove_unnamed(directory, set())  # what a writer that died left: a build needs the disk
+    _atomic(directory / vec_name, write_vectors)  # a failed write (a full disk) leaves no partial file
     if dim is None:
         dim = (store.schema(dataset).field("embedding").type.list_size) if store.schema(dataset) else 1
 

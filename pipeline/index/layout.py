@@ -102,11 +102,16 @@ def check_files(directory: Path, man: dict) -> str | None:
 
 
 def remove_unnamed(directory: Path, keep: set[str]) -> None:
-    """Delete generation files that neither the current manifest nor ``keep`` names."""
-    man = read_manifest(directory)
+    """Delete generation files that neither the current manifest nor ``keep`` names, and the partial files
+    of writers that died (call it holding the writer lock). A manifest this version cannot read (damaged,
+    another format) names nothing: its index is rebuilt, never read."""
+    try:
+        man = read_manifest(directory)
+    except (ValueError, OSError):
+        man = None
     keep = set(keep) | (set(named_files(man)) if man else set())
     for p in directory.iterdir():
-        if p.name in keep or p.name in (MANIFEST, LOCK) or p.name.endswith(".partial"):
+        if p.name in keep or p.name in (MANIFEST, LOCK):
             continue
-        if p.suffix in (".faiss", ".npz", ".npy", ".arrow", ".f32"):
+        if p.name.endswith(".partial") or p.suffix in (".faiss", ".npz", ".npy", ".arrow", ".f32"):
             p.unlink(missing_ok=True)
