@@ -78,6 +78,18 @@ def test_ranking_features_read_the_top_two_of_the_order():
     assert ranking_features(np.array([0]), keys, np.array([-1, -1, -1]), None, True)["inliers"] is None
 
 
+def test_learned_features_are_the_top1_cosine_and_its_cohort_z():
+    keys = np.array([0.2, 0.9, 0.75], np.float32)
+    inl = np.array([-1, -1, -1])
+    learned = np.array([0.1, 0.6, 0.3], np.float32)
+    f = ranking_features(np.array([1, 2, 0]), keys, inl, None, False, None, None, learned, (0.3, 0.1))
+    assert f["learned"] == pytest.approx(0.6) and f["learned_z"] == pytest.approx(3.0)
+    plain = ranking_features(np.array([1, 2, 0]), keys, inl, None, False)  # not fused: no learned cue
+    assert plain["learned"] is None and plain["learned_z"] is None
+    flat = answer_features([0.8], None, None, False, learned=0.5, learned_cohort=(0.5, 0.0))
+    assert flat["learned"] == pytest.approx(0.5) and flat["learned_z"] is None
+
+
 def test_logistic_confidence_is_the_formula():
     m = model()
     feats = {"score": 0.6, "margin": 0.2}

@@ -9,7 +9,9 @@ one answer into ``confidence``, a calibrated probability that the top-1 model is
   and how far that is behind the best text score of the candidates, whether stage 1 had to fall back
   (nothing reached tau), and ``cohort_z``: how many standard deviations the top-1's image score stands
   above the query's image scores over the library (a cohort of up to 1024 meshes; score normalisation
-  as in speaker verification: an absent object's best match rarely stands out of the crowd).
+  as in speaker verification: an absent object's best match rarely stands out of the crowd); and, when the
+  learned view encoder is fused, ``learned`` (the top-1's raw learned-encoder cosine, an absolute measure
+  of how alike the ROI and the model's closest view look) and ``learned_z`` (the same cohort score of it).
 * A :class:`Calibration` holds one logistic model per ranking variant (mode, verified or not), fitted by
   ``python -m pipeline.evaluate openset`` on a split where the right mesh is absent
   (:mod:`pipeline.evaluate.openset`), and its default operating point. Each profile's calibration ships
@@ -32,7 +34,17 @@ from pathlib import Path
 import numpy as np
 
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
-FEATURES = ("score", "margin", "inliers", "text_score", "text_gap", "fallback", "cohort_z")
+FEATURES = (
+    "score",
+    "margin",
+    "inliers",
+    "text_score",
+    "text_gap",
+    "fallback",
+    "cohort_z",
+    "learned",
+    "learned_z",
+)
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024
 #: margins are clipped here (a lone candidate has no next model and gets the cap)
@@ -80,13 +92,16 @@ def answer_features(
     best_text: float | None = None,
     image: float | None = None,
     cohort: tuple[float, float] | None = None,
+    learned: float | None = None,
+    learned_cohort: tuple[float, float] | None = None,
 ) -> dict[str, float | None]:
     """Features of one answer. ``keys``: the ranking key (fused score when verified, else the image score;
     text score in text-only mode) of the best candidates in rank order, at least the top two when there
     are two; ``inliers`` / ``text_score``: the top-1's (``None`` when not verified / no stage 1);
     ``best_text``: the best stage-1 score of any candidate (``text_gap`` = how far the top-1 is behind it);
     ``image`` / ``cohort``: the top-1's image score and the (mean, std) of the query's image scores over
-    the library's cohort (``cohort_z`` = how far the top-1 stands out of the library, in stds)."""
+    the library's cohort (``cohort_z`` = how far the top-1 stands out of the library, in stds);
+    ``learned`` / ``learned_cohort``: the same for the learned encoder's cosine (``None`` when not fused)."""
     if not keys:
         return dict.fromkeys(FEATURES)
     s1 = float(keys[0])
@@ -102,10 +117,17 @@ def answer_features(
         if text_score is None or best_text is None or not math.isfinite(best_text - text_score)
         else max(float(best_text) - float(text_score), 0.0),
         "fallback": 1.0 if used_fallback else 0.0,
-        "cohort_z": None
-        if image is None or cohort is None or not math.isfinite(image) or not cohort[1] > 0
-        else (float(image) - cohort[0]) / cohort[1],
+        "cohort_z": _z(image, cohort),
+        "learned": None if learned is None or not math.isfinite(learned) else float(learned),
+        "learned_z": _z(learned, learned_cohort),
     }
+
+
+def _z(value: float | None, cohort: tuple[float, float] | None) -> float | None:
+    """How many of the cohort's stds ``value`` lies above its mean (``None`` without both)."""
+    if value is None or cohort is None or not math.isfinite(value) or not cohort[1] > 0:
+        return None
+    return (float(value) - cohort[0]) / cohort[1]
 
 
 @dataclass(frozen=True)
@@ -303,10 +325,13 @@ def ranking_features(
     used_fallback: bool,
     image: np.ndarray | None = None,
     cohort: tuple[float, float] | None = None,
+    learned: np.ndarray | None = None,
+    learned_cohort: tuple[float, float] | None = None,
 ) -> dict[str, float | None]:
     """:func:`answer_features` from a ranking's arrays: ``order`` (candidate positions, best first), the
-    ranking ``keys``, verification ``inliers`` (-1 = not verified), stage-1 ``text`` and stage-2 ``image``
-    scores by position, and the query's ``cohort`` statistics (:func:`cohort_stats`)."""
+    ranking ``keys``, verification ``inliers`` (-1 = not verified), stage-1 ``text``, stage-2 ``image`` and
+    ``learned`` scores by position, and the query's ``cohort`` / ``learned_cohort`` statistics
+    (:func:`cohort_stats`)."""
     if not len(order):
         return answer_features([], None, None, used_fallback)
     top = int(order[0])
@@ -314,8 +339,9 @@ def ranking_features(
     t = None if text is None else float(text[top])
     best = None if text is None else float(np.max(text))
     img = None if image is None else float(image[top])
+    lrn = None if learned is None else float(learned[top])
     keys2 = [float(keys[int(j)]) for j in order[:2]]
-    return answer_features(keys2, inl, t, used_fallback, best, img, cohort)
+    return answer_features(keys2, inl, t, used_fallback, best, img, cohort, lrn, learned_cohort)
 
 
 def cohort_indices(n_meshes: int, size: int = COHORT_SIZE) -> np.ndarray:

@@ -2,7 +2,8 @@
 
 Reads the ranking as the earlier steps left it (the order, before it is cut to ``top``; the ranking key:
 ``fused`` when verification ran, else ``image``, and ``text`` in text-only mode; ``inliers``; the stage-1
-``text`` channel; ``used_fallback``) plus the query's image scores over the library's cohort, and sets
+``text`` channel; ``used_fallback``; the ``learned`` channel when fusing) plus the query's image and learned
+scores over the library's cohort, and sets
 ``state.verdict`` (``accepted``, ``confidence``) with :func:`pipeline.query.accept.judge`.
 """
 
@@ -24,11 +25,23 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     if inliers is None:
         inliers = np.full(len(state.mesh_idx), -1, np.int64)
     verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
-    cohort = None
+    cohort = learned_cohort = None
+    learned = state.scores.get("learned")
     if len(order):
-        cohort = cohort_stats(ctx.reranker.score(state.emb.image_space, cohort_indices(ctx.n_meshes)).scores)
+        members = cohort_indices(ctx.n_meshes)
+        cohort = cohort_stats(ctx.reranker.score(state.emb.image_space, members).scores)
+        if learned is not None:
+            learned_cohort = cohort_stats(ctx.learned.score(state.emb.learned, members).scores)
     feats = ranking_features(
-        order, keys, inliers, state.scores.get("text"), state.used_fallback, state.scores.get("image"), cohort
+        order,
+        keys,
+        inliers,
+        state.scores.get("text"),
+        state.used_fallback,
+        state.scores.get("image"),
+        cohort,
+        learned,
+        learned_cohort,
     )
     variant = variant_of(state.request.mode, verified)
     threshold = state.request.accept_threshold
