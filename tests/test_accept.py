@@ -90,6 +90,16 @@ def test_learned_features_are_the_top1_cosine_and_its_cohort_z():
     assert flat["learned"] == pytest.approx(0.5) and flat["learned_z"] is None
 
 
+def test_score_z_and_margin_z_are_in_stds_of_every_candidates_key():
+    keys = np.array([0.2, 0.9, 0.75, -np.inf], np.float32)  # a mesh without views is left out
+    f = ranking_features(np.array([1, 2, 0, 3]), keys, np.array([-1, -1, -1, -1]), None, False)
+    mean, std = np.mean([0.2, 0.9, 0.75]), np.std([0.2, 0.9, 0.75])
+    assert f["score_z"] == pytest.approx((0.9 - mean) / std, rel=1e-5)
+    assert f["margin_z"] == pytest.approx(0.15 / std, rel=1e-4)
+    two = ranking_features(np.array([1, 0]), keys[:2], np.array([-1, -1]), None, False)
+    assert two["score_z"] is None and two["margin_z"] is None  # fewer than 3 keys: no spread
+
+
 def test_logistic_confidence_is_the_formula():
     m = model()
     feats = {"score": 0.6, "margin": 0.2}
@@ -202,6 +212,18 @@ def test_operating_point_accepts_the_target_share():
     assert (conf >= t).mean() >= 0.95 and (conf >= t + 0.011).mean() < 0.95
     assert operating_point(np.array([0.7]), 0.95) == 0.7
     assert operating_point(np.array([]), 0.95) == 0.5
+
+
+def test_a_weighted_operating_point_gives_each_query_file_its_share():
+    # 90 high-scoring renders and 10 low-scoring photos, each set weighing half
+    conf = np.concatenate([np.linspace(0.5, 0.99, 90), np.linspace(0.05, 0.3, 10)])
+    w = np.concatenate([np.full(90, 100 / 180), np.full(10, 100 / 20)])
+    plain, weighted = operating_point(conf, 0.9), operating_point(conf, 0.9, w)
+    assert plain == pytest.approx(0.5)  # 10 of 100 refused: every photo, the lowest render is the threshold
+    photos = conf[90:]
+    assert (photos >= weighted).mean() >= 0.8 > (photos >= plain).mean()  # at most 1/10 of the weight refused
+    assert np.average(conf >= weighted, weights=w) >= 0.9
+    assert operating_point(conf, 0.9, np.ones(100)) == plain  # equal weights: the plain quantile
 
 
 def test_fit_separates_and_meets_its_target_on_the_training_answers():

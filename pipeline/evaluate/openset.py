@@ -12,7 +12,9 @@ the absent answers rejected at the target acceptance in grouped 5-fold cross-val
 answers only (:func:`select_features`). Everything reported is out of fold: leave one object out (all
 answers of an object, with and without it in the library, in the same fold); inside each fold the
 operating point is the highest threshold that still accepts ``target`` of the *training* folds' correct
-answers. The shipped model is then fitted on all answers with the same rule.
+answers, weighted as in the fit (each query file's correct answers weigh the same in total, so the
+threshold is not set by the synthetic renders alone, which score higher than real photos). The shipped
+model is then fitted on all answers with the same rule.
 """
 
 from __future__ import annotations
@@ -171,20 +173,28 @@ def fit(examples: list[Example], features: tuple[str, ...], target: float, c: fl
         intercept=float(lr.intercept_[0]),
         threshold=0.0,
     )
-    return dataclasses.replace(model, threshold=operating_point(model.predict(x[y]), target))
+    return dataclasses.replace(model, threshold=operating_point(model.predict(x[y]), target, w[y]))
 
 
-def operating_point(correct_conf: np.ndarray, target: float) -> float:
-    """The highest threshold t with at least ``target`` of ``correct_conf`` >= t (rounded down to 1e-4)."""
-    c = np.sort(np.asarray(correct_conf, np.float64))
-    if not len(c):
+def operating_point(correct_conf: np.ndarray, target: float, weights: np.ndarray | None = None) -> float:
+    """The highest threshold t with at least ``target`` of ``correct_conf`` >= t (rounded down to 1e-4);
+    with ``weights``, ``target`` is a share of the correct answers' total weight."""
+    conf = np.asarray(correct_conf, np.float64)
+    if not len(conf):
         return 0.5
-    k = int(math.floor((1.0 - target) * len(c) + 1e-9))
+    order = np.argsort(conf, kind="stable")
+    c = conf[order]
+    w = np.ones(len(c)) if weights is None else np.asarray(weights, np.float64)[order]
+    below = np.cumsum(w) / w.sum()  # share of the weight at or below each answer
+    # the answers that may be refused: the lowest ones whose weight stays within 1 - target
+    k = int(np.searchsorted(below, 1.0 - target + 1e-9, side="right"))
     return math.floor(c[min(k, len(c) - 1)] * 1e4) / 1e4
 
 
 def rejected_at_target(examples: list[Example], conf: np.ndarray, target: float) -> float:
-    """Share of the absent answers rejected at the threshold that accepts ``target`` of the correct ones."""
+    """Share of the absent answers rejected at the threshold that accepts ``target`` of the correct ones
+    (counted, not weighted: the feature selection's criterion; weighting it by query file, so that 21 photo
+    objects decide it, made the selection keep only score and inliers and reject less out of fold)."""
     right = np.array([e.library == "full" and e.correct for e in examples])
     absent = np.array([e.library == "absent" for e in examples])
     if not right.any() or not absent.any():

@@ -11,7 +11,9 @@ one answer into ``confidence``, a calibrated probability that the top-1 model is
   above the query's image scores over the library (a cohort of up to 1024 meshes; score normalisation
   as in speaker verification: an absent object's best match rarely stands out of the crowd); and, when the
   learned view encoder is fused, ``learned`` (the top-1's raw learned-encoder cosine, an absolute measure
-  of how alike the ROI and the model's closest view look) and ``learned_z`` (the same cohort score of it).
+  of how alike the ROI and the model's closest view look) and ``learned_z`` (the same cohort score of it);
+  ``score_z`` / ``margin_z``: the top-1's ranking key and its lead over the second in standard deviations
+  of the keys of every candidate ranked (``None`` with fewer than 3).
 * A :class:`Calibration` holds one logistic model per ranking variant (mode, verified or not), fitted by
   ``python -m pipeline.evaluate openset`` on a split where the right mesh is absent
   (:mod:`pipeline.evaluate.openset`), and its default operating point. Each profile's calibration ships
@@ -44,6 +46,8 @@ FEATURES = (
     "cohort_z",
     "learned",
     "learned_z",
+    "score_z",
+    "margin_z",
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024
@@ -94,6 +98,7 @@ def answer_features(
     cohort: tuple[float, float] | None = None,
     learned: float | None = None,
     learned_cohort: tuple[float, float] | None = None,
+    key_stats: tuple[float, float] | None = None,
 ) -> dict[str, float | None]:
     """Features of one answer. ``keys``: the ranking key (fused score when verified, else the image score;
     text score in text-only mode) of the best candidates in rank order, at least the top two when there
@@ -101,7 +106,8 @@ def answer_features(
     ``best_text``: the best stage-1 score of any candidate (``text_gap`` = how far the top-1 is behind it);
     ``image`` / ``cohort``: the top-1's image score and the (mean, std) of the query's image scores over
     the library's cohort (``cohort_z`` = how far the top-1 stands out of the library, in stds);
-    ``learned`` / ``learned_cohort``: the same for the learned encoder's cosine (``None`` when not fused)."""
+    ``learned`` / ``learned_cohort``: the same for the learned encoder's cosine (``None`` when not fused);
+    ``key_stats``: (mean, std) of the ranking keys of every candidate (``score_z``, ``margin_z``)."""
     if not keys:
         return dict.fromkeys(FEATURES)
     s1 = float(keys[0])
@@ -120,6 +126,8 @@ def answer_features(
         "cohort_z": _z(image, cohort),
         "learned": None if learned is None or not math.isfinite(learned) else float(learned),
         "learned_z": _z(learned, learned_cohort),
+        "score_z": _z(s1, key_stats),
+        "margin_z": None if key_stats is None or not key_stats[1] > 0 else max(margin, 0.0) / key_stats[1],
     }
 
 
@@ -331,7 +339,7 @@ def ranking_features(
     """:func:`answer_features` from a ranking's arrays: ``order`` (candidate positions, best first), the
     ranking ``keys``, verification ``inliers`` (-1 = not verified), stage-1 ``text``, stage-2 ``image`` and
     ``learned`` scores by position, and the query's ``cohort`` / ``learned_cohort`` statistics
-    (:func:`cohort_stats`)."""
+    (:func:`cohort_stats`); the keys' own statistics over every candidate are taken here."""
     if not len(order):
         return answer_features([], None, None, used_fallback)
     top = int(order[0])
@@ -341,7 +349,9 @@ def ranking_features(
     img = None if image is None else float(image[top])
     lrn = None if learned is None else float(learned[top])
     keys2 = [float(keys[int(j)]) for j in order[:2]]
-    return answer_features(keys2, inl, t, used_fallback, best, img, cohort, lrn, learned_cohort)
+    return answer_features(
+        keys2, inl, t, used_fallback, best, img, cohort, lrn, learned_cohort, cohort_stats(keys)
+    )
 
 
 def cohort_indices(n_meshes: int, size: int = COHORT_SIZE) -> np.ndarray:
