@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--target",
         type=float_range(0.5, 1.0),
         default=0.97,
-        help="share of the training folds' correct answers the operating point accepts (default 0.97)",
+        help="share of the training folds' correct answers the operating point accepts, each query file "
+        "weighing the same (default 0.97)",
     )
     p.add_argument("--c", type=float_range(1e-4, 1e4), default=1.0, help="inverse L2 strength (default 1)")
     p.add_argument(
