@@ -111,12 +111,13 @@ def answer_features(
     if not keys:
         return dict.fromkeys(FEATURES)
     s1 = float(keys[0])
-    margin = (
-        MARGIN_CAP if len(keys) < 2 or not math.isfinite(keys[1]) else min(s1 - float(keys[1]), MARGIN_CAP)
+    margin = max(
+        MARGIN_CAP if len(keys) < 2 or not math.isfinite(keys[1]) else min(s1 - float(keys[1]), MARGIN_CAP),
+        0.0,
     )
     return {
         "score": s1 if math.isfinite(s1) else None,
-        "margin": max(margin, 0.0),
+        "margin": margin,
         "inliers": None if inliers is None or inliers < 0 else math.log1p(int(inliers)),
         "text_score": None if text_score is None or not math.isfinite(text_score) else float(text_score),
         "text_gap": None
@@ -127,7 +128,7 @@ def answer_features(
         "learned": None if learned is None or not math.isfinite(learned) else float(learned),
         "learned_z": _z(learned, learned_cohort),
         "score_z": _z(s1, key_stats),
-        "margin_z": None if key_stats is None or not key_stats[1] > 0 else max(margin, 0.0) / key_stats[1],
+        "margin_z": None if key_stats is None or not key_stats[1] > 0 else margin / key_stats[1],
     }
 
 
