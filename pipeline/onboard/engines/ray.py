@@ -308,7 +308,7 @@ class RayEngine(Engine):
 
         import ray
 
-        ds = self._dataset(items, ray.cluster_resources(), isolate)
+        ds = self._dataset(items, self._resources(watch), isolate)
         out: queue.Queue = queue.Queue()  # at most a couple of batches wait here (the pump holds back)
         stop = threading.Event()
 
@@ -363,6 +363,22 @@ class RayEngine(Engine):
             raise setup from exc
         finally:
             stop.set()
+
+    def _resources(self, watch: ClusterWatch) -> dict[str, float]:
+        """What a round is planned for: the cluster's resources; after a node loss, only the nodes alive
+        now, once Ray's node table agrees that the lost ones are gone (a round planned and placed while
+        Ray still counts a killed node waits for ever for its actors, and no node is lost in it to
+        abandon it by)."""
+        import ray
+
+        if not watch.lost:
+            return ray.cluster_resources()
+        if not watch.settle():
+            log.warning(
+                "Ray still lists lost node(s) %s as alive; planning on the nodes that answer",
+                ", ".join(watch.describe_lost()),
+            )
+        return watch.resources()
 
     def _check_stalled(self, watch: ClusterWatch, lost_before: int, moved: float, received: set[str]) -> None:
         """Raise :class:`RoundStalled` when, since a node of this round was lost, no batch came for

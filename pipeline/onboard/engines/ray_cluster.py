@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import time
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -19,6 +20,9 @@ log = logging.getLogger(__name__)
 
 #: seconds the reachability probe waits for every node to answer
 PROBE_TIMEOUT_S = 120.0
+#: seconds a new round waits for Ray's node table to mark the nodes this run lost as dead (Ray's health
+#: check takes about 15-30 s; until then Ray still places actors on them)
+SETTLE_S = 60.0
 
 
 class RayEngineError(RuntimeError):
@@ -36,6 +40,7 @@ class NodeInfo:
     node_id: str
     ip: str
     cpus: float
+    gpus: float = 0.0
 
     def describe(self) -> str:
         return f"{self.ip} ({self.node_id[:8]})"
@@ -50,7 +55,8 @@ def alive_nodes() -> dict[str, NodeInfo]:
     for n in ray.nodes():
         ip, port = n.get("NodeManagerAddress", "?"), n.get("NodeManagerPort")
         if n.get("Alive") and (not port or reachable(ip, port)):
-            out[n["NodeID"]] = NodeInfo(n["NodeID"], ip, n.get("Resources", {}).get("CPU", 0.0))
+            res = n.get("Resources", {})
+            out[n["NodeID"]] = NodeInfo(n["NodeID"], ip, res.get("CPU", 0.0), res.get("GPU", 0.0))
     return out
 
 
@@ -97,6 +103,27 @@ class ClusterWatch:
     def cpus_left(self) -> float:
         """CPUs of the nodes alive now."""
         return sum(n.cpus for n in alive_nodes().values())
+
+    def resources(self) -> dict[str, float]:
+        """CPUs and GPUs of the nodes alive now (``ray.cluster_resources()`` still counts a killed node
+        until Ray's health check has noticed it)."""
+        nodes = alive_nodes().values()
+        return {"CPU": sum(n.cpus for n in nodes), "GPU": sum(n.gpus for n in nodes)}
+
+    def settle(self, timeout_s: float = SETTLE_S) -> bool:
+        """Wait until Ray's own node table marks every node this run lost as dead, so that the next
+        round's actors are not placed on a node that is gone (they would restart for ever, waiting for
+        room the survivors lack). False when Ray still lists one alive after ``timeout_s``."""
+        import ray
+
+        deadline = time.monotonic() + timeout_s
+        while True:
+            alive = {n["NodeID"] for n in ray.nodes() if n.get("Alive")}
+            if not alive & self.lost.keys():
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.5)
 
     def head_reachable(self) -> bool:
         """Whether the cluster's head (its GCS port) still accepts connections; a quick TCP probe, so a
