@@ -1,10 +1,12 @@
 """Warm masked query latency with and without the learned view encoder, interleaved in one process.
 
-    python bench/bench_learned_query.py --store STORE --queries Q.jsonl [--n 6] [--repeats 2]
+    python bench/bench_learned_query.py --store STORE --queries Q.jsonl [--n 6] [--repeats 2] [--torch-threads N]
 
 Opens two Retrievers on the same store (the default, and ``--model learned_encoder=none``), warms both,
 then alternates them over the first ``--n`` queries (masks, verification on by default) and prints the p50
 of the total and of the embedding step for each, and their ratio (the number that survives a loaded machine).
+``--torch-threads N`` sets torch's and BLAS's threads as the query CLI and the service do (their default is
+half the cores, 1 on 2 cores); without it, the libraries' own defaults (every core).
 """
 
 from __future__ import annotations
@@ -25,7 +27,12 @@ def main() -> int:
     p.add_argument("--queries", required=True)
     p.add_argument("--n", type=int, default=6)
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--torch-threads", type=int, default=None, help="as the query CLI's (default: every core)")
     args = p.parse_args()
+    if args.torch_threads:
+        from pipeline.threads import apply_torch_threads
+
+        apply_torch_threads(args.torch_threads)  # before NumPy and torch are imported
     from pipeline.evaluate.datasets import load_queries
     from pipeline.query import Retriever
 
