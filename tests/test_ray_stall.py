@@ -94,15 +94,15 @@ def test_a_round_after_a_node_loss_is_planned_on_the_nodes_alive(monkeypatch):
 
     monkeypatch.setattr(ray, "cluster_resources", lambda: {"CPU": 2.0})
     e = bare_engine()
-    assert e._resources(SettlingWatch()) == {"CPU": 2.0}  # nothing lost: Ray's own count
+    assert e._resources(SettlingWatch()) == ({"CPU": 2.0}, True)  # nothing lost: Ray's own count
     watch = SettlingWatch(["n1"])
-    assert e._resources(watch) == {"CPU": 1.0, "GPU": 0.0} and watch.settled == 1
+    assert e._resources(watch) == ({"CPU": 1.0, "GPU": 0.0}, True) and watch.settled == 1
 
 
 def test_planning_goes_on_when_ray_never_marks_the_node_dead(monkeypatch, caplog):
     e, watch = bare_engine(), SettlingWatch(["n1"], settles=False)
     with caplog.at_level("WARNING", logger=engine.__name__):
-        assert e._resources(watch) == {"CPU": 1.0, "GPU": 0.0}
+        assert e._resources(watch) == ({"CPU": 1.0, "GPU": 0.0}, False)  # the round then watches for a stall
     assert "still lists lost node(s) node (n1) as alive" in caplog.text
 
 
@@ -143,3 +143,41 @@ def test_settle_gives_up_after_its_timeout(monkeypatch):
     watch = object.__new__(ray_cluster.ClusterWatch)
     watch.lost = {"n1": None}
     assert not watch.settle(timeout_s=60) and len(calls) == 6  # at 10, 20, ..., 60 s: the deadline
+
+
+def test_meshes_of_abandoned_rounds_are_not_blamed(monkeypatch):
+    """A stalled round is abandoned after a node loss that its own stall check recorded, so the watch sees
+    no new loss afterwards: its meshes are redone as infrastructure failures, never given strikes (two
+    strikes would record them as failed meshes)."""
+    items = [{"mesh_id": "m1", "todo": []}, {"mesh_id": "m2", "todo": []}]
+    rounds = iter([engine.RoundStalled(set(), 30, 1), engine.RoundStalled({"m1"}, 30, 1), {"m2"}])
+
+    def a_round(plan, pending, bars, summary, watch, isolate):
+        assert not isolate  # no mesh was suspected, so no one-mesh batches
+        r = next(rounds)
+        if isinstance(r, Exception):
+            raise r
+        return r
+
+    class LostOne(Watch):
+        def __init__(self, gcs=None):
+            super().__init__(["n1"])
+
+        def cpus_left(self):
+            return 1.0
+
+    e = bare_engine()
+    e.cfg = types.SimpleNamespace(ray=RayOptions(stall_s=30, address="auto"))
+    e.stop = types.SimpleNamespace(requested=False)
+    failed = []
+    monkeypatch.setattr(engine, "ClusterWatch", LostOne)
+    monkeypatch.setattr(engine, "gcs_address", lambda: "h:1")
+    monkeypatch.setattr(engine, "check_reachable", lambda paths: None)
+    monkeypatch.setattr(e, "_reach", lambda plan, items: {}, raising=False)
+    monkeypatch.setattr(e, "_round", a_round, raising=False)
+    monkeypatch.setattr(e, "_reconnect", lambda watch, pending, received: None, raising=False)
+    monkeypatch.setattr(e, "_commit_lost", lambda plan, bad: failed.extend(bad) or len(bad), raising=False)
+    summary = types.SimpleNamespace(failed=0, redone=0, lost_nodes=[])
+    e._stream(None, items, {}, summary)
+    assert failed == [] and summary.failed == 0
+    assert summary.redone == 3 and summary.lost_nodes == ["node (n1)"]

@@ -238,11 +238,12 @@ class RayEngine(Engine):
         infra: dict[str, int] = {}
         pending, isolate, received_any = items, False, False
         while pending:
+            stalled_round = False
             try:
                 received = self._round(plan, pending, bars, summary, watch, isolate)
             except RoundStalled as stalled:  # planned for nodes that are gone: plan again on those alive
                 log.info("round abandoned: %s", stalled)
-                received = stalled.received
+                received, stalled_round = stalled.received, True
                 self._reconnect(watch, pending, received)
             received_any |= bool(received)
             if self.stop.requested:  # interrupted: no new round; the re-run does the rest
@@ -250,7 +251,9 @@ class RayEngine(Engine):
             lost = [r for r in pending if r["mesh_id"] not in received]
             if not lost:
                 break
-            dead = watch.check()
+            # a stalled round is abandoned only after a node loss (which its stall check has already
+            # recorded in the watch): its meshes are not to blame either
+            dead = watch.check() or stalled_round
             for r in lost:
                 counter = infra if dead else strikes
                 counter[r["mesh_id"]] = counter.get(r["mesh_id"], 0) + 1
@@ -308,7 +311,8 @@ class RayEngine(Engine):
 
         import ray
 
-        ds = self._dataset(items, self._resources(watch), isolate)
+        resources, settled = self._resources(watch)
+        ds = self._dataset(items, resources, isolate)
         out: queue.Queue = queue.Queue()  # at most a couple of batches wait here (the pump holds back)
         stop = threading.Event()
 
@@ -329,7 +333,9 @@ class RayEngine(Engine):
         thread.start()
         self._pumps.append(thread)
         received: set[str] = set()
-        lost_before, moved = len(watch.lost), time.monotonic()
+        # a round planned while Ray still listed a lost node alive may stall on it: watch it as if the
+        # loss happened in this round
+        lost_before, moved = (len(watch.lost) if settled else 0), time.monotonic()
         try:
             while True:
                 try:
@@ -364,21 +370,22 @@ class RayEngine(Engine):
         finally:
             stop.set()
 
-    def _resources(self, watch: ClusterWatch) -> dict[str, float]:
-        """What a round is planned for: the cluster's resources; after a node loss, only the nodes alive
-        now, once Ray's node table agrees that the lost ones are gone (a round planned and placed while
-        Ray still counts a killed node waits for ever for its actors, and no node is lost in it to
-        abandon it by)."""
+    def _resources(self, watch: ClusterWatch) -> tuple[dict[str, float], bool]:
+        """What a round is planned for, and whether Ray's node table agrees with it: the cluster's
+        resources; after a node loss, only the nodes alive now, once Ray's table marks the lost ones dead
+        (a round planned and placed while Ray still counts a killed node waits for ever for its actors,
+        and no node is lost in it to abandon it by)."""
         import ray
 
         if not watch.lost:
-            return ray.cluster_resources()
-        if not watch.settle():
+            return ray.cluster_resources(), True
+        settled = watch.settle()
+        if not settled:
             log.warning(
                 "Ray still lists lost node(s) %s as alive; planning on the nodes that answer",
                 ", ".join(watch.describe_lost()),
             )
-        return watch.resources()
+        return watch.resources(), settled
 
     def _check_stalled(self, watch: ClusterWatch, lost_before: int, moved: float, received: set[str]) -> None:
         """Raise :class:`RoundStalled` when, since a node of this round was lost, no batch came for
