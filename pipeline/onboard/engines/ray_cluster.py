@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 #: seconds the reachability probe waits for every node to answer
 PROBE_TIMEOUT_S = 120.0
 #: seconds a new round waits for Ray's node table to mark the nodes this run lost as dead (Ray's health
-#: check takes about 15-30 s; until then Ray still places actors on them)
+#: check takes several seconds; until then Ray still places actors on them)
 SETTLE_S = 60.0
 
 
@@ -102,7 +102,7 @@ class ClusterWatch:
 
     def cpus_left(self) -> float:
         """CPUs of the nodes alive now."""
-        return sum(n.cpus for n in alive_nodes().values())
+        return self.resources()["CPU"]
 
     def resources(self) -> dict[str, float]:
         """CPUs and GPUs of the nodes alive now (``ray.cluster_resources()`` still counts a killed node
