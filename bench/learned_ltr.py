@@ -1,0 +1,160 @@
+"""A linear fusion learned on synthetic feature dumps (listwise softmax), tested on the labelled photos.
+
+    python bench/learned_ltr.py --train SYNTH_DUMP [--train DIR ...] --test PHOTO_DUMP
+
+Measured, not shipped (docs/results.md, section 7.2). The dumps are ``bench/learned_features.py``'s (224 px,
+unflipped). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
+log-probability of the right mesh under a softmax over the library, on the training dumps only. Printed:
+the shipped fusion's top-1 / top-5 on every dump; per feature set the fitted weights (normalised to
+sum |w| = 1), the training dumps' held-out numbers (5 folds by object label) and the photos' (never used
+to fit). Intervals: 95 % bootstrap over objects (training dumps) or photos (the test dump).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from learned_fusion import (  # noqa: E402
+    bootstrap,
+    dumped_cues,
+    fuse,
+    learned_scores,
+    ranks_of,
+)
+
+W_SHIPPED = (0.27, 0.22, 0.51)
+
+
+def load(d: Path):
+    recs = json.loads((d / "queries.json").read_text())
+    n = len(json.loads((d / "meshes.json").read_text()))
+    desc, text, inl, exp, kind, photo = dumped_cues(recs)
+    L = {p: learned_scores(d, 224, 0, p, n) for p in ("cls", "mean", "patch")}
+    troi = np.array([r["text_roi"] for r in recs], np.float32)
+    tpr = np.array([r["text_prompt"] for r in recs], np.float32)
+    label = np.array([r["label"] for r in recs])
+    return dict(
+        recs=recs,
+        desc=desc,
+        text=text,
+        troi=troi,
+        tpr=tpr,
+        inl=inl,
+        exp=exp,
+        kind=kind,
+        photo=photo,
+        label=label,
+        L=L,
+    )
+
+
+def z(x):
+    """Each query's scores in standard deviations about its mean over the library."""
+    return (x - x.mean(axis=1, keepdims=True)) / np.maximum(x.std(axis=1, keepdims=True), 1e-6)
+
+
+FEATSETS = {
+    "raw3": lambda D: [D["L"]["cls"], D["desc"], D["text"]],
+    "z3": lambda D: [z(D["L"]["cls"]), z(D["desc"]), z(D["text"])],
+    "raw4": lambda D: [D["L"]["cls"], D["desc"], D["troi"], D["tpr"]],
+    "z4": lambda D: [z(D["L"]["cls"]), z(D["desc"]), z(D["troi"]), z(D["tpr"])],
+    "z6": lambda D: [z(D["L"]["cls"]), z(D["L"]["patch"]), z(D["desc"]), z(D["troi"]), z(D["tpr"])],
+    "rawz": lambda D: [D["L"]["cls"], D["desc"], D["text"], z(D["L"]["cls"]), z(D["desc"]), z(D["text"])],
+}
+
+
+def bonus(D):
+    return np.clip((D["inl"] - 4) / 16, 0, 1)
+
+
+def scores(F, w, b, wv):
+    base = np.tensordot(w, F, axes=1)
+    top = np.argsort(-base, axis=1)[:, :20]
+    m = np.zeros_like(base, bool)
+    np.put_along_axis(m, top, True, axis=1)
+    return base + np.where(m, wv * b, 0.0)
+
+
+def fit(Fs, bs, exps, lam=1e-3):
+    """Cue weights and verification weight (sum |w| = 1) maximising the right mesh's softmax log-probability."""
+    F = np.concatenate(Fs, axis=1)  # (k, Q, M)
+    b = np.concatenate(bs, axis=0)
+    exp = sum(exps, [])
+    k = F.shape[0]
+
+    def loss(p):
+        w, wv, t = p[:k], p[k], np.exp(p[k + 1])
+        s = (np.tensordot(w, F, axes=1) + wv * b) * t
+        s = s - s.max(axis=1, keepdims=True)
+        lse = np.log(np.exp(s).sum(axis=1))
+        pos = np.array([np.log(np.exp(s[i, e]).sum()) for i, e in enumerate(exp)])
+        return (lse - pos).mean() + lam * (w @ w)
+
+    p0 = np.r_[np.ones(k) / k, 0.3, np.log(20.0)]
+    r = minimize(loss, p0, method="L-BFGS-B")
+    w, wv = r.x[:k], r.x[k]
+    s = np.abs(w).sum()
+    return w / s, wv / s
+
+
+def rates(r, groups):
+    t1, t5 = (r <= 1).astype(float), (r <= 5).astype(float)
+    a, b = bootstrap(t1, groups), bootstrap(t5, groups)
+    return f"{t1.mean():.3f} [{a[0]:.2f},{a[1]:.2f}] / {t5.mean():.3f} [{b[0]:.2f},{b[1]:.2f}]"
+
+
+def shipped(D):
+    wl, wd, wt = W_SHIPPED
+    return ranks_of(fuse(D["L"]["cls"], D["desc"], D["text"], D["inl"], wd, wt, 0.3, None), D["exp"])
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--train", action="append", required=True)
+    p.add_argument("--test", required=True)
+    a = p.parse_args()
+    trains = [load(Path(d)) for d in a.train]
+    test = load(Path(a.test))
+    print(
+        "test shipped:",
+        {
+            k: rates(shipped(test)[test["kind"] == k], test["photo"][test["kind"] == k])
+            for k in ("mask", "box")
+        },
+    )
+    for D in trains:
+        print("train-set shipped", rates(shipped(D), D["label"]))
+    for name, fn in FEATSETS.items():
+        # leave-object-out on the synthetic sets (in-domain check)
+        labels = np.unique(np.concatenate([D["label"] for D in trains]))
+        rng = np.random.default_rng(0)
+        folds = {lab: i % 5 for i, lab in enumerate(rng.permutation(labels))}
+        held = [np.zeros(len(D["recs"]), int) for D in trains]
+        for f in range(5):
+            Fs, bs, exps = [], [], []
+            for D in trains:
+                tr = np.array([folds[x] != f for x in D["label"]])
+                Fs.append(np.stack(fn(D))[:, tr])
+                bs.append(bonus(D)[tr])
+                exps.append([e for e, t in zip(D["exp"], tr, strict=True) if t])
+            w, wv = fit(Fs, bs, exps)
+            for D, h in zip(trains, held, strict=True):
+                te = np.array([folds[x] == f for x in D["label"]])
+                r = ranks_of(scores(np.stack(fn(D)), w, bonus(D), wv), D["exp"])
+                h[te] = r[te]
+        cv = [rates(h, D["label"]) for D, h in zip(trains, held, strict=True)]
+        w, wv = fit([np.stack(fn(D)) for D in trains], [bonus(D) for D in trains], [D["exp"] for D in trains])
+        r = ranks_of(scores(np.stack(fn(test)), w, bonus(test), wv), test["exp"])
+        out = {k: rates(r[test["kind"] == k], test["photo"][test["kind"] == k]) for k in ("mask", "box")}
+        print(name, "w", np.round(w, 3), "wv", round(float(wv), 3), "| synth CV", cv, "| photos", out)
+
+
+if __name__ == "__main__":
+    main()
