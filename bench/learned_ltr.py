@@ -22,6 +22,9 @@ from scipy.optimize import minimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from learned_fusion import (  # noqa: E402
+    INLIER_CAP,
+    INLIER_FLOOR,
+    VERIFY_TOP,
     bootstrap,
     dumped_cues,
     fuse,
@@ -71,12 +74,12 @@ FEATSETS = {
 
 
 def bonus(D):
-    return np.clip((D["inl"] - 4) / 16, 0, 1)
+    return np.clip((D["inl"] - INLIER_FLOOR) / (INLIER_CAP - INLIER_FLOOR), 0, 1)
 
 
 def scores(F, w, b, wv):
     base = np.tensordot(w, F, axes=1)
-    top = np.argsort(-base, axis=1)[:, :20]
+    top = np.argsort(-base, axis=1)[:, :VERIFY_TOP]
     m = np.zeros_like(base, bool)
     np.put_along_axis(m, top, True, axis=1)
     return base + np.where(m, wv * b, 0.0)
@@ -111,7 +114,7 @@ def rates(r, groups):
 
 
 def shipped(D):
-    wl, wd, wt = W_SHIPPED
+    _, wd, wt = W_SHIPPED
     return ranks_of(fuse(D["L"]["cls"], D["desc"], D["text"], D["inl"], wd, wt, 0.3, None), D["exp"])
 
 
