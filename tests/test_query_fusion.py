@@ -9,6 +9,7 @@ from query_helpers import FAKE_LIBRARY, fake_models, make_fake_store, make_store
 
 from pipeline.query import QueryError, Retriever
 from pipeline.query.fusion import FusionWeights, fuse
+from pipeline.query.steps.text_terms import best_per_model
 
 
 class AspectEncoder:
@@ -38,10 +39,22 @@ def test_fuse_is_a_weighted_mean_of_cosines():
     assert fuse(np.array([-np.inf]), np.array([0.9]), np.array([0.5]), w)[0] == -np.inf
 
 
-@pytest.mark.parametrize("desc,text", [(-0.1, 0.2), (0.6, 0.5), (0.2, 1.2)])
-def test_fusion_weights_are_checked(desc, text):
+def test_fuse_weighs_the_roi_caption_and_the_prompt_apart():
+    w = FusionWeights(desc=0.2, text=0.1, prompt=0.3)
+    assert w.learned == pytest.approx(0.4)
+    learned, desc, text, prompt = np.array([0.8]), np.array([0.5]), np.array([0.6]), np.array([0.9])
+    got = fuse(learned, desc, text, w, prompt)
+    np.testing.assert_allclose(got, [0.4 * 0.8 + 0.2 * 0.5 + 0.1 * 0.6 + 0.3 * 0.9], rtol=1e-6)
+    # without the prompt's own score the one text score takes both text weights
+    np.testing.assert_allclose(fuse(learned, desc, text, w), [0.4 * 0.8 + 0.2 * 0.5 + 0.4 * 0.6], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "desc,text,prompt", [(-0.1, 0.2, 0.0), (0.6, 0.5, 0.0), (0.2, 1.2, 0.0), (0.5, 0.2, 0.4)]
+)
+def test_fusion_weights_are_checked(desc, text, prompt):
     with pytest.raises(ValueError, match="fusion weights"):
-        FusionWeights(desc, text)
+        FusionWeights(desc, text, prompt)
 
 
 @pytest.fixture(scope="module")
@@ -75,12 +88,20 @@ def test_query_fuses_learned_descriptor_and_text(learned_store):
     with Retriever.open(learned_store, models=models_with_learned(), use_cache=False) as r:
         assert r.learned is not None and "learned_encoder" in r.required_roles()
         res = r.query(img, "the red can", mask=mask, top=4)
-        s = r.settings
-        wl = 1 - s.fuse_desc - s.fuse_text
+        s, w = r.settings, FusionWeights.of(r.settings)
+        assert w.prompt > 0 and w.text > 0  # the offline profile weighs the two text terms apart
+        emb = r.embed(r.make_roi(img, "the red can", mask=mask), "the red can")
+        text = best_per_model(r.text_filter, emb.text_space, r.n_meshes)
+        prompt = best_per_model(r.text_filter, emb.prompt_vec, r.n_meshes)
+        index = {m: j for j, m in enumerate(r.mesh_ids)}
         for c in res.candidates:
             assert c.learned_score is not None
-            want = wl * c.learned_score + s.fuse_desc * c.image_score + s.fuse_text * c.text_score
+            j = index[c.mesh_id]
+            want = w.learned * c.learned_score + s.fuse_desc * c.image_score
+            want += w.text * text[j] + w.prompt * prompt[j]
             assert c.score == pytest.approx(want, abs=1e-5)
+            # stage 1's blended score is the best caption's weighted mean of the two: never above both
+            assert c.text_score <= max(text[j], prompt[j]) + 1e-6
         scores = [c.score for c in res.candidates]
         assert scores == sorted(scores, reverse=True)
         assert res.candidates[0].name == "red_can"
@@ -95,7 +116,7 @@ def test_weights_move_the_order(learned_store):
         learned_store,
         models=models_with_learned(),
         use_cache=False,
-        settings_changes={"fuse_desc": 0.0, "fuse_text": 0.0},
+        settings_changes={"fuse_desc": 0.0, "fuse_text": 0.0, "fuse_prompt": 0.0},
     ) as r:
         res = r.query(img, "a can", mask=mask, top=4)
         cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
@@ -104,7 +125,7 @@ def test_weights_move_the_order(learned_store):
         learned_store,
         models=models_with_learned(),
         use_cache=False,
-        settings_changes={"fuse_desc": 0.5, "fuse_text": 0.0},
+        settings_changes={"fuse_desc": 0.5, "fuse_text": 0.0, "fuse_prompt": 0.0},
     ) as r:
         res = r.query(img, "a can", mask=mask, top=4)
         cans = {c.name: c.score for c in res.candidates if c.name.endswith("_can")}
@@ -114,7 +135,7 @@ def test_weights_move_the_order(learned_store):
 def test_bad_fusion_weights_are_a_query_error(learned_store):
     img, mask = photo("red", 40, 50)
     with Retriever.open(
-        learned_store, models=models_with_learned(), use_cache=False, settings_changes={"fuse_desc": 0.8}
+        learned_store, models=models_with_learned(), use_cache=False, settings_changes={"fuse_desc": 0.95}
     ) as r:
         with pytest.raises(QueryError, match="fusion weights"):
             r.query(img, "a can", mask=mask)
@@ -160,10 +181,32 @@ def test_a_large_library_keeps_the_tau_cut_when_fusing(learned_store):
         every = r.query(img, "the red can", mask=mask, top=n, threshold=1.5)
         assert len(every.candidates) == n and not every.used_fallback  # all fused, tau is no cut
     changes = {"fuse_all_max_models": n - 1}
-    with Retriever.open(learned_store, models=models_with_learned(), use_cache=False, settings_changes=changes) as r:
-        cut = r.query(img, "the red can", mask=mask, top=n, threshold=1.5, fallback_k=2, fallback_unit="meshes")
+    with Retriever.open(
+        learned_store, models=models_with_learned(), use_cache=False, settings_changes=changes
+    ) as r:
+        cut = r.query(
+            img, "the red can", mask=mask, top=n, threshold=1.5, fallback_k=2, fallback_unit="meshes"
+        )
         assert cut.used_fallback and len(cut.candidates) == 2  # nothing passes tau 1.5: the top-2 fallback
-        s = r.settings
+        w = FusionWeights.of(r.settings)
         c = cut.candidates[0]
-        want = (1 - s.fuse_desc - s.fuse_text) * c.learned_score + s.fuse_desc * c.image_score
-        assert c.score == pytest.approx(want + s.fuse_text * c.text_score, abs=1e-5)  # still fused
+        want = w.learned * c.learned_score + w.desc * c.image_score
+        # still fused; the text terms are not computed past the bound: stage 1's score takes both weights
+        assert c.score == pytest.approx(want + (w.text + w.prompt) * c.text_score, abs=1e-5)
+
+
+def test_without_the_prompt_its_weight_goes_to_the_roi_caption(learned_store):
+    img, mask = photo("red", 44, 52)
+    with Retriever.open(learned_store, models=models_with_learned(), use_cache=False) as r:
+        emb = r.embed(r.make_roi(img, "the red can", mask=mask), "the red can")
+        res = r.rank(emb, "two-stage", top=4, prompt_weight=0.0, verify=False)
+        w = FusionWeights.of(r.settings)
+        text = best_per_model(r.text_filter, emb.text_space, r.n_meshes)
+        index = {m: j for j, m in enumerate(r.mesh_ids)}
+        for c in res.candidates:
+            want = (
+                w.learned * c.learned_score
+                + w.desc * c.image_score
+                + (w.text + w.prompt) * text[index[c.mesh_id]]
+            )
+            assert c.score == pytest.approx(want, abs=1e-5)

@@ -13,6 +13,8 @@ view-level rankings, the evaluation engine's records and the Python API's full J
   with it (the default) or without it (``--model learned_encoder=none``) answers the same.
 
 A change of any ranking, score or field changes a digest; the test then prints the differing queries.
+A change made on purpose re-records one file: ``OSCAR_RECORD_GOLDEN=sample_synth.json pytest
+tests/test_query_golden.py`` writes it and skips (the run is a recording, not a check).
 """
 
 from __future__ import annotations
@@ -37,6 +39,9 @@ def check(store, queries_file: Path, expected_file: Path, light: bool = False, o
     queries = load_queries(queries_file)
     with Retriever.open(store, profile="auto", model_overrides=overrides) as r:
         got = g.summary(g.capture(r, queries, g.machine_tokens(Path(store), queries_file), light), light)
+    if os.environ.get("OSCAR_RECORD_GOLDEN") == expected_file.name:  # re-record one file, by name
+        expected_file.write_text(json.dumps(got, indent=1, sort_keys=True) + "\n")
+        pytest.skip(f"recorded {expected_file}")
     expected = json.loads(expected_file.read_text())
     assert sorted(got) == sorted(expected)
     wrong = {q: g.differences(expected[q], got[q]) for q in expected if got[q] != expected[q]}

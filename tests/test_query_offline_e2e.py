@@ -11,6 +11,7 @@ from onboard_helpers import onboard
 from query_helpers import render_query_view
 
 from pipeline.query import Retriever
+from pipeline.query.fusion import FusionWeights
 
 #: two look-alike cups (colour tells them apart), a mug, two boxes and a bottle
 YCB_NAMES = ["065-a_cups", "065-b_cups", "025_mug", "004_sugar_box", "008_pudding_box", "021_bleach_cleanser"]
@@ -83,7 +84,7 @@ def test_local_feature_verification(ycb_store, queries, offline_models):
         assert best.name == "004_sugar_box" and best.inliers >= 15
         # image-only fusion: the learned and descriptor weights rescaled to sum to 1, then the inlier bonus
         s = r.settings
-        wl, wd = 1 - s.fuse_desc - s.fuse_text, s.fuse_desc
+        wl, wd = FusionWeights.of(s).learned, s.fuse_desc
         base = (wl * best.learned_score + wd * best.image_score) / (wl + wd)
         # (its weight is fuse_verify_weight when fusing, verify_weight without the learned encoder)
         bonus = r.verifier.cfg.bonus(best.inliers, s.fuse_verify_weight)

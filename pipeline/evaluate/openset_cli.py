@@ -139,7 +139,9 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
         )
         _save_embeddings(args.embeddings, cache_key, embeddings)
         default = _default_variant(full)
-        models = model_identities(full.profile, full.tables.onboarding, full.learned is not None)
+        models = model_identities(
+            full.profile, full.tables.onboarding, full.learned is not None, full.settings
+        )
         profile = full.profile.name
     command = "python -m pipeline.evaluate openset " + " ".join(shlex.quote(a) for a in argv)
     _write_examples(examples, out / "examples.jsonl")  # the answers first: fitting takes a while

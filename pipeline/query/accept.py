@@ -69,13 +69,18 @@ def learned_identity(spec) -> str:
     return f"{spec.key()} {json.dumps(opts, sort_keys=True)}"
 
 
-def model_identities(profile, onboarding, fused: bool) -> dict[str, str | None]:
+def model_identities(profile, onboarding, fused: bool, settings=None) -> dict[str, str | None]:
     """What a calibration is tied to: the store's models of :data:`CALIBRATED_ROLES`, and the learned view
-    encoder as the query fuses it, since the fused score's distribution depends on it. ``fused``: whether
-    the ranking context fuses it (``RankContext.learned``: the role kept and the store holding its
-    embeddings); ``None`` when it does not."""
+    encoder as the query fuses it, with the fusion weights (``settings``' ``fuse_*``), since the fused
+    score's distribution depends on both. ``fused``: whether the ranking context fuses it
+    (``RankContext.learned``: the role kept and the store holding its embeddings); ``None`` when it does
+    not. A calibration written before the weights were recorded has no ``fusion`` entry and is not checked
+    on it."""
+    from pipeline.query.fusion import fusion_identity
+
     out = {r: onboarding.models.get(r) for r in CALIBRATED_ROLES}
     out["learned_encoder"] = learned_identity(profile.learned_encoder) if fused else None
+    out["fusion"] = fusion_identity(settings) if fused and settings is not None else None
     return out
 
 
@@ -210,10 +215,10 @@ class Calibration:
 
     def mismatch(self, models: dict[str, str | None]) -> str | None:
         """Why this calibration does not apply to a store onboarded with ``models`` (``None``: it applies)."""
-        for role in (*CALIBRATED_ROLES, "learned_encoder"):  # a calibration older than the learned
-            if role in self.models and self.models.get(role) != models.get(role):  # encoder has no entry
-                return (
-                    f"acceptance calibrated for {role} {self.models.get(role)}, the store uses "
+        for role in (*CALIBRATED_ROLES, "learned_encoder", "fusion"):  # a calibration older than the
+            if role in self.models and self.models.get(role) != models.get(role):  # learned encoder or
+                return (  # the recorded fusion weights has no entry for them
+                    f"acceptance calibrated for {role} {self.models.get(role)}, this store and query use "
                     f"{models.get(role)}: re-calibrate with `python -m pipeline.evaluate openset` (docs/query.md)"
                 )
         return None

@@ -58,4 +58,4 @@ def calibration_for(profile, settings, onboarding, *, fused: bool):
         raise QueryError(str(exc)) from None
     if calibration is None:
         return None, None
-    return calibration, calibration.mismatch(model_identities(profile, onboarding, fused))
+    return calibration, calibration.mismatch(model_identities(profile, onboarding, fused, settings))

@@ -43,11 +43,12 @@ class QuerySettings:
     accept_threshold: float | None = None  # open-set operating point (None: the calibration's default)
     accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
     # fusion with the learned view encoder (pipeline.query.fusion), when the store has its embeddings:
-    # weights proportional to 1 / each cosine's spread over the library on the labelled photos (label-free,
-    # docs/results.md "Learned view encoder"); the learned cosine gets 1 - desc - text = 0.27
-    fuse_desc: float = 0.22  # weight of the descriptor cosine
-    fuse_text: float = 0.51  # weight of the stage-1 text score
-    fuse_verify_weight: float = 0.3  # weight of the inlier term when fusing (verify_weight without fusion)
+    # fitted on synthetic queries only, tested on the labelled photos (bench/learned_ltr.py, docs/results.md
+    # section 7.2); the learned cosine gets 1 - desc - text - prompt = 0.60
+    fuse_desc: float = 0.24  # weight of the descriptor cosine
+    fuse_text: float = 0.06  # weight of the ROI caption's text score
+    fuse_prompt: float = 0.10  # weight of the prompt's text score
+    fuse_verify_weight: float = 0.14  # weight of the inlier term when fusing (verify_weight without fusion)
     fuse_all: bool = (
         True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
     )

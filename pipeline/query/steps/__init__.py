@@ -12,6 +12,7 @@ service and the evaluation sweeps, all rank here; no step calls a model, so re-r
 ``top_text``      stage 1 (text-only): the ``top`` models by caption score
 ``all_models``    stage 1 (image-only): every active model
 ``stage2``        view-encoder scores and best views (``image`` channel, per-view scores)
+``text_terms``    the ROI caption's and the prompt's own text scores for the fusion (``text_roi``, ``text_prompt``)
 ``learned``       the learned view encoder's cosine (``learned``) and the fused score (``fusion``)
 ``fuse``          order by score channels
 ``verify``        local-feature inliers of the top candidates fused into their score (``inliers``, ``fused``)
@@ -39,6 +40,7 @@ from pipeline.query.steps import (
     learned,
     shortlist,
     stage2,
+    text_terms,
     top_text,
     verify,
     view_ranking,
@@ -62,6 +64,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
     "two-stage": (
         Step(shortlist.run),
         Step(stage2.run),
+        Step(text_terms.run),
         Step(learned.run),
         Step(fuse.run, {"by": ("fusion", "text")}),
         Step(verify.run, {"base": "fusion"}),

@@ -25,12 +25,14 @@ def run(state: RankState) -> RankState:
         s = state.ctx.learned.score(state.emb.learned, which)
     except ValueError as exc:  # vector widths that do not match the store
         raise model_mismatch(exc) from None
-    settings = state.ctx.settings
     try:
-        weights = FusionWeights(settings.fuse_desc, settings.fuse_text)
+        weights = FusionWeights.of(state.ctx.settings)
     except ValueError as exc:
         raise QueryError(str(exc)) from None
     state.scores["learned"], state.best_view["learned"] = s.scores, s.best_view
-    state.scores["fusion"] = fuse(s.scores, image, state.scores.get("text"), weights)
+    text, prompt = state.scores.get("text_roi"), state.scores.get("text_prompt")
+    if text is None:  # the text terms were not computed: stage 1's blended score takes both weights
+        text = state.scores.get("text")
+    state.scores["fusion"] = fuse(s.scores, image, text, weights, prompt)
     state.timings["learned_ms"] = s.seconds * 1000
     return state

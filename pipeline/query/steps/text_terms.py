@@ -1,0 +1,47 @@
+"""The fused score's two text terms: the ROI caption's and the prompt's own cosine with each candidate's
+closest caption (``text_roi`` and ``text_prompt`` channels, :mod:`pipeline.query.fusion`).
+
+Stage 1's ``text`` score is the best caption's weighted mean of the two cosines; the fusion weighs them apart
+(fitted so, docs/results.md section 7.2). Computed only when the learned encoder is fused over a library of
+at most ``fuse_all_max_models`` models (two matrix-vector products over its captions); past that, or without
+a prompt (or with prompt weight 0), the fusion falls back as :func:`pipeline.query.fusion.fuse` says.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.query.fusion import fusing
+from pipeline.query.steps.state import RankState, model_mismatch
+
+
+def best_per_model(text_filter, vec: np.ndarray, n_meshes: int) -> np.ndarray:
+    """Max cosine of ``vec`` over each model's captions, by store position (-1 for a model without any)."""
+    best = np.full(n_meshes, -1.0, np.float32)
+    if hasattr(text_filter, "scores"):  # the exact filter: one BLAS product, a max per model
+        if text_filter.n_rows:
+            q = np.asarray(vec, np.float32).reshape(-1)
+            if q.shape[0] != text_filter.dim:
+                raise ValueError(f"query vector has {q.shape[0]} dims, captions have {text_filter.dim}")
+            _, (models, scores) = text_filter.scores(q)
+            best[models] = scores
+        return best
+    rows_mesh, scores = text_filter.caption_scores(vec)  # the index's filter: its exact table
+    np.maximum.at(best, rows_mesh, scores)
+    return best
+
+
+def run(state: RankState) -> RankState:
+    """Add ``text_roi`` (and ``text_prompt`` when the request uses the prompt) for every candidate."""
+    ctx, emb = state.ctx, state.emb
+    if not fusing(state) or ctx.n_meshes > ctx.settings.fuse_all_max_models or not len(state.mesh_idx):
+        return state
+    try:
+        roi = best_per_model(ctx.text_filter, emb.text_space, ctx.n_meshes)
+        state.scores["text_roi"] = roi[state.mesh_idx]
+        if emb.prompt_vec is not None and state.request.prompt_weight > 0:
+            prompt = best_per_model(ctx.text_filter, emb.prompt_vec, ctx.n_meshes)
+            state.scores["text_prompt"] = prompt[state.mesh_idx]
+    except ValueError as exc:  # vector widths that do not match the store
+        raise model_mismatch(exc) from None
+    return state
