@@ -124,6 +124,28 @@ def test_judge_applies_the_threshold_and_its_override():
         judge(cal, hi, "two-stage+verify", threshold=1.5)
 
 
+def test_z_score_features_need_enough_models_to_judge():
+    """A z-score over a handful of models cannot stand out (at most sqrt(n - 1) stds): the verdict is withheld
+    below MIN_Z_SAMPLE scores, and given from it on; a model without z-scores judges any library."""
+    from pipeline.query.accept import MIN_Z_SAMPLE
+
+    zmodel = AcceptModel(("score_z", "learned_z"), (2.0, 1.0), (0.5, 0.5), (1.0, 1.0), 0.0, 0.3)
+    cal = Calibration("offline", {}, {"two-stage+verify": zmodel, "two-stage": model(threshold=0.5)})
+    feats = {"score": 0.7, "margin": 0.2, "score_z": 1.6, "learned_z": 1.2}
+    few = judge(cal, feats, "two-stage+verify", samples={"candidates": 4, "cohort": 4})
+    assert few.accepted is None and few.confidence is None and "at least" in few.note and "has 4" in few.note
+    cohort_small = judge(
+        cal, feats, "two-stage+verify", samples={"candidates": 50, "cohort": MIN_Z_SAMPLE - 1}
+    )
+    assert cohort_small.accepted is None and "learned_z" in cohort_small.note
+    enough = judge(
+        cal, feats, "two-stage+verify", samples={"candidates": MIN_Z_SAMPLE, "cohort": MIN_Z_SAMPLE}
+    )
+    assert enough.accepted is not None and enough.confidence is not None
+    plain = judge(cal, feats, "two-stage", samples={"candidates": 4, "cohort": 4})  # score and margin only
+    assert plain.accepted is not None
+
+
 def test_judge_without_calibration_or_variant_or_candidates():
     feats = {"score": 0.7, "margin": 0.2, "inliers": None, "text_score": None, "fallback": 0.0}
     none = judge(None, feats, "two-stage")

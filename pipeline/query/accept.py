@@ -51,6 +51,13 @@ FEATURES = (
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024
+#: features that are z-scores over a sample of the answer's own scores: the ranked candidates' keys
+#: (``score_z``, ``margin_z``) or the library's cohort (``cohort_z``, ``learned_z``)
+Z_FEATURES = {"score_z": "candidates", "margin_z": "candidates", "cohort_z": "cohort", "learned_z": "cohort"}
+#: the fewest scores a z-score feature is read from before a verdict that uses it is given: over a handful
+#: of models the best one cannot stand out (at most sqrt(n - 1) standard deviations), so a right answer in a
+#: 4-model library looked like an absent object's
+MIN_Z_SAMPLE = 20
 #: margins are clipped here (a lone candidate has no next model and gets the cap)
 MARGIN_CAP = 0.25
 #: the roles whose model identity decides whether a calibration applies
@@ -310,8 +317,11 @@ def judge(
     variant: str,
     threshold: float | None = None,
     mismatch: str | None = None,
+    samples: dict[str, int] | None = None,
 ) -> Verdict:
-    """Confidence and acceptance of one answer; ``threshold`` overrides the calibration's operating point."""
+    """Confidence and acceptance of one answer; ``threshold`` overrides the calibration's operating point.
+    ``samples``: how many scores the z-score features were read from (``{"candidates": n, "cohort": m}``);
+    a model using one read from fewer than :data:`MIN_Z_SAMPLE` does not judge (``accepted`` ``None``)."""
     if threshold is not None and not 0.0 <= float(threshold) <= 1.0:
         raise ValueError(f"accept threshold must be within [0, 1], got {threshold}")
     if feats.get("score") is None and all(v is None for v in feats.values()):
@@ -324,6 +334,16 @@ def judge(
     if model is None:
         return Verdict(None, None, threshold, variant, feats, f"no acceptance calibration for {variant}")
     t = model.threshold if threshold is None else float(threshold)
+    small = [
+        f
+        for f in model.features
+        if f in Z_FEATURES and (samples or {}).get(Z_FEATURES[f], MIN_Z_SAMPLE) < MIN_Z_SAMPLE
+    ]
+    if small:
+        n = min(samples[Z_FEATURES[f]] for f in small)
+        note = (f"the acceptance model reads {', '.join(small)}, z-scores over the library's models, "
+                f"which need at least {MIN_Z_SAMPLE} of them; this ranking has {n}")  # fmt: skip
+        return Verdict(None, None, t, variant, feats, note)
     conf = model.confidence(feats)
     if conf is None:
         need = [f for f in model.features if feats.get(f) is None]

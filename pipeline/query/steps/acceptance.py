@@ -27,8 +27,9 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     verified = bool(len(order)) and int(inliers[int(order[0])]) >= 0
     cohort = learned_cohort = None
     learned = state.scores.get("learned")
+    members = cohort_indices(ctx.n_meshes)
+    samples = {"candidates": int(np.isfinite(np.asarray(keys, np.float64)).sum()), "cohort": len(members)}
     if len(order):
-        members = cohort_indices(ctx.n_meshes)
         cohort = cohort_stats(ctx.reranker.score(state.emb.image_space, members).scores)
         if learned is not None:
             learned_cohort = cohort_stats(ctx.learned.score(state.emb.learned, members).scores)
@@ -45,5 +46,5 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     )
     variant = variant_of(state.request.mode, verified)
     threshold = state.request.accept_threshold
-    state.verdict = judge(ctx.calibration, feats, variant, threshold, ctx.calibration_mismatch)
+    state.verdict = judge(ctx.calibration, feats, variant, threshold, ctx.calibration_mismatch, samples)
     return state
