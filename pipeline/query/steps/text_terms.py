@@ -9,6 +9,8 @@ a prompt (or with prompt weight 0), the fusion falls back as :func:`pipeline.que
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from pipeline.query.fusion import fusing
@@ -36,6 +38,7 @@ def run(state: RankState) -> RankState:
     ctx, emb = state.ctx, state.emb
     if not fusing(state) or ctx.n_meshes > ctx.settings.fuse_all_max_models or not len(state.mesh_idx):
         return state
+    t0 = time.perf_counter()
     try:
         roi = best_per_model(ctx.text_filter, emb.text_space, ctx.n_meshes)
         state.scores["text_roi"] = roi[state.mesh_idx]
@@ -44,4 +47,5 @@ def run(state: RankState) -> RankState:
             state.scores["text_prompt"] = prompt[state.mesh_idx]
     except ValueError as exc:  # vector widths that do not match the store
         raise model_mismatch(exc) from None
+    state.timings["text_terms_ms"] = (time.perf_counter() - t0) * 1000
     return state
