@@ -252,6 +252,30 @@ def test_a_weighted_operating_point_gives_each_query_file_its_share():
     assert operating_point(conf, 0.9, np.ones(100)) == plain  # equal weights: the plain quantile
 
 
+def test_files_weighed_together_share_one_weight():
+    """``weight_group`` (openset --weigh-together): two files of real photos weigh as much together as the
+    one file of renders, not twice as much; without it each file weighs the same."""
+    from pipeline.evaluate.openset import _weights
+    from pipeline.evaluate.openset_cli import _weight_groups
+
+    def ex(source, group=None):
+        return Example(
+            "q", "g", source, "mask", "full", "two-stage", {"score": 0.5}, True, None, weight_group=group
+        )
+
+    alone = [ex("renders")] * 8 + [ex("photos")] * 3 + [ex("bbq")] * 1
+    w = _weights(alone)
+    assert w[:8].sum() == pytest.approx(w[8:11].sum()) == pytest.approx(w[11:].sum())
+    groups = _weight_groups(["photos,bbq"], {"renders", "photos", "bbq"})
+    assert groups == {"photos": "photos+bbq", "bbq": "photos+bbq"}
+    together = [ex(e.source, groups.get(e.source)) for e in alone]
+    w = _weights(together)
+    assert w[:8].sum() == pytest.approx(w[8:].sum())  # the two photo files share one half
+    assert w[8] == pytest.approx(w[11])  # and within it every answer weighs the same
+    assert "not a --queries file" in _weight_groups(["photos,nope"], {"photos"})
+    assert "twice" in _weight_groups(["photos", "photos,bbq"], {"photos", "bbq"})
+
+
 def test_fit_separates_and_meets_its_target_on_the_training_answers():
     exs = examples()
     feats = usable_features(exs)

@@ -52,6 +52,7 @@ class Example:
     top1: str | None
     confidence: float | None = None  # out of fold (filled by cross_validate)
     accepted: bool | None = None  # out of fold, at the fold's operating point
+    weight_group: str | None = None  # query files weighed together (``--weigh-together``); None: its file
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -135,8 +136,9 @@ def _matrix(examples: list[Example], features: tuple[str, ...]) -> tuple[np.ndar
 
 
 def _weights(examples: list[Example]) -> np.ndarray:
-    """Each query file weighs the same in total (mean weight 1)."""
-    sources = [e.source for e in examples]
+    """Each query file, or group of files weighed together (``weight_group``: the real photos, say), weighs
+    the same in total (mean weight 1)."""
+    sources = [e.weight_group or e.source for e in examples]
     counts = {s: sources.count(s) for s in set(sources)}
     w = np.array([1.0 / counts[s] for s in sources])
     return w * len(w) / w.sum()

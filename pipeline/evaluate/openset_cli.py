@@ -36,6 +36,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, metavar="DIR", help="report folder")
     p.add_argument(
+        "--weigh-together",
+        action="append",
+        default=[],
+        metavar="NAMES",
+        help="query files (names without extension, comma-separated) that share one weight in the fit and "
+        "the operating point, e.g. ycb_photos,bbq_sauce: the real photos (repeatable; each other file "
+        "weighs alone)",
+    )
+    p.add_argument(
         "--absent",
         default="ycb-video",
         help="class labels left out of the library, comma-separated, or 'ycb-video' (default: the 21 "
@@ -81,6 +90,22 @@ def main(argv: list[str]) -> int:
     return run_reporting_errors(_run, args, argv)
 
 
+def _weight_groups(specs: list[str], stems: set[str]) -> dict[str, str] | str:
+    """``--weigh-together`` as {file name: its group's name}, or a one-line error (an unknown name, a name in
+    two groups)."""
+    groups: dict[str, str] = {}
+    for spec in specs:
+        names = [n.strip() for n in spec.split(",") if n.strip()]
+        unknown = sorted(set(names) - stems)
+        if unknown:
+            return f"--weigh-together names {', '.join(unknown)}, not a --queries file (names: {', '.join(sorted(stems))})"
+        for n in names:
+            if n in groups:
+                return f"--weigh-together names {n} twice"
+            groups[n] = "+".join(names)
+    return groups
+
+
 def _absent_labels(text: str) -> set[str]:
     from pipeline.evaluate.openset import YCB_VIDEO_LABELS
 
@@ -116,6 +141,9 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     for path in args.queries:
         qs = load_queries(path)[: args.limit] if args.limit else load_queries(path)
         queries += [(q, Path(path).stem) for q in qs]
+    together = _weight_groups(args.weigh_together, {Path(p).stem for p in args.queries})
+    if isinstance(together, str):
+        return fail(together)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     errors: list[dict] = []
@@ -143,6 +171,8 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
             full.profile, full.tables.onboarding, full.learned is not None, full.settings
         )
         profile = full.profile.name
+    for e in examples:
+        e.weight_group = together.get(e.source)
     command = "python -m pipeline.evaluate openset " + " ".join(shlex.quote(a) for a in argv)
     _write_examples(examples, out / "examples.jsonl")  # the answers first: fitting takes a while
     summary, calibration = _fit_all(examples, default, args, profile, models, command, len(drop))
