@@ -108,6 +108,27 @@ def test_index_equals_exact_on_tau_sets_and_fallbacks(store_path):
             answers_equal(snap.run(q, None, 5, "meshes"), exact.run(q, None, 5, "meshes"))
 
 
+def test_model_scores_are_the_best_caption_per_model_on_either_filter(store_path):
+    """The fusion's text terms (``model_scores``): each model's best caption cosine, from the exact filter
+    and, unchanged, from the index's filter (which reads its exact table for them); a wrong width is refused."""
+    with Store.open(store_path) as store:
+        tables = tables_of(store)
+        exact = TextFilter(tables.captions)
+        indexed = open_stage1(store, tables, "index")
+        assert indexed.engine == "index"
+        for q in queries(3):
+            rows_mesh, rows = exact.caption_scores(q)
+            models, best = exact.model_scores(q)
+            want = {int(m): float(rows[rows_mesh == m].max()) for m in np.unique(rows_mesh)}
+            assert dict(zip(models.tolist(), best.tolist(), strict=True)) == pytest.approx(want, abs=1e-6)
+            im, ib = indexed.model_scores(q)
+            np.testing.assert_array_equal(im, models)
+            np.testing.assert_allclose(ib, best, atol=1e-6)
+        with pytest.raises(ValueError, match="dims"):
+            exact.model_scores(np.ones(DIM + 1, np.float32))
+        indexed.close()
+
+
 def test_default_probe_keeps_top1(store_path):
     with Store.open(store_path) as store:
         exact = TextFilter(tables_of(store).captions)

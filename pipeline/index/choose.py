@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 
 class IndexedTextFilter:
     """Stage 1 from an :class:`~pipeline.index.snapshot.IndexSnapshot`; view-level caption scores (an
-    evaluation aid, not a query step) still come from the exact table, built on first use."""
+    evaluation aid) and per-model ones (the fusion's text terms, libraries of at most
+    ``fuse_all_max_models`` models) still come from the exact table, built on first use."""
 
     def __init__(self, snapshot, captions, threads) -> None:
         self.snapshot = snapshot
@@ -38,10 +39,16 @@ class IndexedTextFilter:
     def run(self, query, threshold, fallback_k, fallback_unit="captions"):
         return self.snapshot.run(query, threshold, fallback_k, fallback_unit)
 
-    def caption_scores(self, query):
+    def _exact_filter(self) -> TextFilter:
         if self._exact is None:
             self._exact = TextFilter(self._captions, self._threads)
-        return self._exact.caption_scores(query)
+        return self._exact
+
+    def caption_scores(self, query):
+        return self._exact_filter().caption_scores(query)
+
+    def model_scores(self, query):
+        return self._exact_filter().model_scores(query)
 
     def close(self) -> None:
         if self._exact is not None:

@@ -51,7 +51,7 @@ class FusionWeights:
     @classmethod
     def of(cls, settings) -> FusionWeights:
         """The weights of ``settings`` (``fuse_desc``, ``fuse_text``, ``fuse_prompt``)."""
-        return cls(settings.fuse_desc, settings.fuse_text, getattr(settings, "fuse_prompt", 0.0))
+        return cls(settings.fuse_desc, settings.fuse_text, settings.fuse_prompt)
 
 
 def fuse(
@@ -85,7 +85,7 @@ def fusion_identity(settings) -> str:
     a calibration fitted on it, depends on them (``fuse_desc``, ``fuse_text``, ``fuse_prompt``,
     ``fuse_verify_weight``)."""
     d, t = float(settings.fuse_desc), float(settings.fuse_text)
-    p, v = float(getattr(settings, "fuse_prompt", 0.0)), float(settings.fuse_verify_weight)
+    p, v = float(settings.fuse_prompt), float(settings.fuse_verify_weight)
     return f"learned {1.0 - d - t - p:.4g} desc {d:.4g} text {t:.4g} prompt {p:.4g} verify {v:.4g}"
 
 

@@ -146,15 +146,26 @@ class TextFilter:
         """The first connection (single-threaded callers and tests)."""
         return self._all[0]
 
-    def caption_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(mesh_idx, cosine) of every caption row, in table order (evaluation's view-level text ranking)."""
+    def _vector(self, query: np.ndarray) -> np.ndarray:
         v = np.asarray(query, dtype=np.float32).reshape(-1)
         if v.shape[0] != self.dim:
             raise ValueError(f"query vector has {v.shape[0]} dims, captions have {self.dim}")
+        return v
+
+    def caption_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mesh_idx, cosine) of every caption row, in table order (evaluation's view-level text ranking)."""
+        v = self._vector(query)
         if not self.n_rows:
             return np.zeros(0, np.int32), np.zeros(0, np.float32)
         rows, _ = self.scores(v)
         return self._kernel_parts()[4], rows
+
+    def model_scores(self, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(mesh_idx, max cosine over its captions) of every model with captions (the fusion's text terms)."""
+        v = self._vector(query)
+        if not self.n_rows:
+            return np.zeros(0, np.int32), np.zeros(0, np.float32)
+        return self.scores(v)[1]
 
     def _kernel_parts(self) -> tuple:
         """(the caption matrix (rows, width x 8) float32, row order by model, group starts, model per group,

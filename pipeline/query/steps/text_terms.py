@@ -20,16 +20,8 @@ from pipeline.query.steps.state import RankState, model_mismatch
 def best_per_model(text_filter, vec: np.ndarray, n_meshes: int) -> np.ndarray:
     """Max cosine of ``vec`` over each model's captions, by store position (-1 for a model without any)."""
     best = np.full(n_meshes, -1.0, np.float32)
-    if hasattr(text_filter, "scores"):  # the exact filter: one BLAS product, a max per model
-        if text_filter.n_rows:
-            q = np.asarray(vec, np.float32).reshape(-1)
-            if q.shape[0] != text_filter.dim:
-                raise ValueError(f"query vector has {q.shape[0]} dims, captions have {text_filter.dim}")
-            _, (models, scores) = text_filter.scores(q)
-            best[models] = scores
-        return best
-    rows_mesh, scores = text_filter.caption_scores(vec)  # the index's filter: its exact table
-    np.maximum.at(best, rows_mesh, scores)
+    models, scores = text_filter.model_scores(vec)
+    best[models] = scores
     return best
 
 
