@@ -3,8 +3,10 @@
     python bench/bench_learned_query.py --store STORE --queries Q.jsonl [--n 6] [--repeats 2] [--torch-threads N]
 
 Opens two Retrievers on the same store (the default, and ``--model learned_encoder=none``), warms both,
-then alternates them over the first ``--n`` queries (masks, verification on by default) and prints the p50
-of the total and of the embedding step for each, and their ratio (the number that survives a loaded machine).
+then alternates three configurations over the first ``--n`` queries (masks, verification on by default):
+the default, the default with the learned ROI embedding run in turn instead of beside the rest
+(``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), and descriptor only. Prints the p50 of the total
+and of the embedding step for each, and the ratios (the numbers that survive a loaded machine).
 ``--torch-threads N`` sets torch's and BLAS's threads as the query CLI and the service do (their default is
 half the cores, 1 on 2 cores); without it, the libraries' own defaults (every core).
 """
@@ -12,6 +14,7 @@ half the cores, 1 on 2 cores); without it, the libraries' own defaults (every co
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -37,17 +40,22 @@ def main() -> int:
     from pipeline.query import Retriever
 
     qs = [q for q in load_queries(args.queries) if q.mask is not None][: args.n]
+    from pipeline.query.overlap import OVERLAP_ENV
+
+    learned = Retriever.open(args.store)
     rs = {
-        "learned": Retriever.open(args.store),
-        "descriptor": Retriever.open(args.store, model_overrides={"learned_encoder": "none"}),
+        "learned": (learned, "1"),
+        "learned, in turn": (learned, "0"),
+        "descriptor": (Retriever.open(args.store, model_overrides={"learned_encoder": "none"}), "1"),
     }
-    for r in rs.values():
+    for r, _ in rs.values():
         r.query(qs[0].image, qs[0].prompt, mask=qs[0].mask)  # warm
     total = {k: [] for k in rs}
     embed = {k: [] for k in rs}
     for _ in range(args.repeats):
         for q in qs:
-            for k, r in rs.items():
+            for k, (r, overlap) in rs.items():
+                os.environ[OVERLAP_ENV] = overlap
                 t0 = time.perf_counter()
                 res = r.query(q.image, q.prompt, mask=q.mask)
                 total[k].append(1000 * (time.perf_counter() - t0))
@@ -57,10 +65,10 @@ def main() -> int:
             f"{k}: p50 total {statistics.median(total[k]):.1f} ms, "
             f"p50 embed {statistics.median(embed[k]):.1f} ms, n {len(total[k])}"
         )
-    print(
-        f"ratio learned / descriptor p50: {statistics.median(total['learned']) / statistics.median(total['descriptor']):.2f}"
-    )
-    for r in rs.values():
+    p50 = {k: statistics.median(v) for k, v in total.items()}
+    print(f"ratio learned / descriptor p50: {p50['learned'] / p50['descriptor']:.2f}")
+    print(f"ratio learned / learned in turn p50: {p50['learned'] / p50['learned, in turn']:.2f}")
+    for r in {id(r): r for r, _ in rs.values()}.values():
         r.close()
     return 0
 

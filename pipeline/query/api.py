@@ -27,6 +27,7 @@ from pipeline.query.inputs import check_knobs, roi_from_inputs
 from pipeline.query.library import StoreTables, store_version
 from pipeline.query.models import QueryModels, roles_for
 from pipeline.query.opening import open_state
+from pipeline.query.overlap import beside
 from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi
@@ -155,12 +156,20 @@ class Retriever:
     def embed(self, roi: Roi, prompt: str) -> QueryEmbedding:
         """The ROI's vectors in the caption space and the view-encoder space (plus the prompt's if used)."""
         prompt = clean_prompt(prompt, self.settings.max_prompt_chars)
-        emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
-        if self.learned is not None:
+        learned = None
+        if self.learned is not None:  # loaded here, run beside the rest (pipeline/query/overlap.py)
             enc = self.model("learned_encoder")  # an adapter without ROI framing embeds the ROI as a view
-            emb.learned = getattr(enc, "encode_roi", enc.encode_image)([roi.image])[0]
-        if self.settings.verify and self.verifier.available:
-            emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
+            learned = beside(lambda: getattr(enc, "encode_roi", enc.encode_image)([roi.image])[0])
+        try:
+            emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
+            if self.settings.verify and self.verifier.available:
+                emb.local = self.verifier.roi_features(roi.image, roi.crop_mask)
+        except BaseException:
+            if learned is not None:
+                learned.exception()  # the side call ends with this query; the first error is the one raised
+            raise
+        if learned is not None:
+            emb.learned = learned.result()
         return emb
 
     @recovering

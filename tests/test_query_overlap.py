@@ -1,0 +1,138 @@
+"""The learned ROI embedding runs beside the rest of the query's embedding (pipeline/query/overlap.py): same
+vectors as in turn, its errors reach the caller, and it stays in the calling thread where it cannot pay."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from query_helpers import FAKE_LIBRARY, fake_models, make_store, object_image, unit
+
+from pipeline.query import Retriever
+from pipeline.query import overlap as overlap_mod
+from pipeline.query.overlap import OVERLAP_ENV, beside, overlapping
+
+
+class ThreadRecordingEncoder:
+    """A stand-in learned encoder (box aspect ratio) that records the thread each call ran in."""
+
+    model_id = "fake-learned"
+    dim = 3
+
+    def __init__(self, fail: bool = False):
+        self.threads: list[str] = []
+        self.fail = fail
+
+    def encode_image(self, images):
+        self.threads.append(threading.current_thread().name)
+        if self.fail:
+            raise RuntimeError("encoder broke")
+        rows = []
+        for im in images:
+            arr = np.abs(np.asarray(im.convert("RGB"), np.int16) - 205).sum(axis=2) > 30
+            ys, xs = np.nonzero(arr)
+            h, w = (np.ptp(ys) + 1, np.ptp(xs) + 1) if len(ys) else im.size[::-1]
+            rows.append([np.log(h / w), 1.0, 0.2])
+        return unit(rows)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    models, enc = fake_models(), ThreadRecordingEncoder()
+    meshes = {}
+    for name, (colour, w, h) in FAKE_LIBRARY.items():
+        views = [object_image(colour, w, h)]
+        meshes[f"id-{name}"] = {
+            "name": name,
+            "captions": models["text_encoder"].encode_text(models["captioner"].caption(views)),
+            "views": models["view_encoder"].encode_image(views),
+            "learned": enc.encode_image(views),
+            "images": views,
+        }
+    return make_store(tmp_path_factory.mktemp("overlap") / "store", meshes)
+
+
+@pytest.fixture
+def two_cores(monkeypatch):
+    """As on a 2-core machine with torch on one thread (the query CLI's default there)."""
+    monkeypatch.setattr(overlap_mod, "cpu_count", lambda: 2)
+    monkeypatch.delenv(OVERLAP_ENV, raising=False)
+    torch = pytest.importorskip("torch")
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+
+
+def query(store, enc, monkeypatch, overlap: str):
+    monkeypatch.setenv(OVERLAP_ENV, overlap)
+    img = object_image("red", 44, 52, pad=30)
+    mask = np.abs(np.asarray(img, np.int16) - 205).sum(axis=2) > 30
+    with Retriever.open(store, models={**fake_models(), "learned_encoder": enc}, use_cache=False) as r:
+        return r.query(img, "the red can", mask=mask, top=4)
+
+
+def test_beside_runs_in_the_pool_and_gives_the_value(two_cores):
+    assert overlapping()
+    f = beside(lambda: threading.current_thread().name)
+    assert f.result(timeout=30).startswith("oscar-embed")
+
+
+def test_beside_raises_the_calls_error(two_cores):
+    def boom():
+        raise ValueError("bad roi")
+
+    with pytest.raises(ValueError, match="bad roi"):
+        beside(boom).result(timeout=30)
+
+
+def test_beside_runs_in_place_when_switched_off_or_without_a_free_core(two_cores, monkeypatch):
+    here = threading.current_thread().name
+    monkeypatch.setenv(OVERLAP_ENV, "0")
+    assert not overlapping() and beside(lambda: threading.current_thread().name).result() == here
+    monkeypatch.delenv(OVERLAP_ENV)
+    import torch
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)  # torch already on every core
+    assert not overlapping() and beside(lambda: threading.current_thread().name).result() == here
+    monkeypatch.setattr(overlap_mod, "cpu_count", lambda: 1)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 1)
+    assert not overlapping()
+    with pytest.raises(KeyError):  # an error of an in-place call is raised by .result(), not by beside()
+        f = beside(lambda: {}["x"])
+        f.result()
+
+
+def test_query_is_the_same_beside_and_in_turn(store, two_cores, monkeypatch):
+    side, in_turn = ThreadRecordingEncoder(), ThreadRecordingEncoder()
+    a = query(store, side, monkeypatch, "1")
+    b = query(store, in_turn, monkeypatch, "0")
+    assert side.threads and all(t.startswith("oscar-embed") for t in side.threads)
+    assert in_turn.threads and not any(t.startswith("oscar-embed") for t in in_turn.threads)
+    assert [c.mesh_id for c in a.candidates] == [c.mesh_id for c in b.candidates]
+    assert [c.score for c in a.candidates] == pytest.approx([c.score for c in b.candidates], abs=1e-7)
+    assert a.accepted == b.accepted and a.candidates[0].name == "red_can"
+
+
+def test_an_encoder_error_beside_the_query_reaches_the_caller(store, two_cores, monkeypatch):
+    enc = ThreadRecordingEncoder(fail=True)
+    with pytest.raises(RuntimeError, match="encoder broke"):
+        query(store, enc, monkeypatch, "1")
+    assert enc.threads and enc.threads[0].startswith("oscar-embed")
+
+
+def test_a_busy_pool_runs_the_call_in_place(two_cores, monkeypatch):
+    monkeypatch.setattr(overlap_mod, "_pool", None)
+    monkeypatch.setattr(overlap_mod, "_free", None)
+    release, started = threading.Event(), threading.Event()
+
+    def hold():
+        started.set()
+        release.wait(30)
+        return threading.current_thread().name
+
+    held = beside(hold)  # the 2-core pool's one thread
+    assert started.wait(30)
+    here = threading.current_thread().name
+    assert beside(lambda: threading.current_thread().name).result() == here
+    release.set()
+    assert held.result(timeout=30).startswith("oscar-embed")
+    assert beside(lambda: threading.current_thread().name).result(timeout=30).startswith("oscar-embed")
