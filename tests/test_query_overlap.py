@@ -136,3 +136,19 @@ def test_a_busy_pool_runs_the_call_in_place(two_cores, monkeypatch):
     release.set()
     assert held.result(timeout=30).startswith("oscar-embed")
     assert beside(lambda: threading.current_thread().name).result(timeout=30).startswith("oscar-embed")
+
+
+def test_a_forked_child_starts_a_pool_of_its_own(two_cores):
+    import multiprocessing
+
+    assert beside(lambda: 1).result(timeout=30) == 1  # the parent's pool exists
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as pool:
+        assert pool.apply(_side_thread_name, ()).startswith("oscar-embed")
+
+
+def _side_thread_name() -> str:
+    import torch
+
+    torch.get_num_threads = lambda: 1  # the child of the 2-core stand-in (the fixture's patch is copied)
+    return beside(lambda: threading.current_thread().name).result(timeout=30)

@@ -41,6 +41,16 @@ def overlapping() -> bool:
     return cpu_count() > busy
 
 
+def _forget_pool() -> None:
+    """In a forked child: the parent's pool threads do not exist there, so start a pool of its own."""
+    global _pool, _free, _pool_lock
+    _pool, _free, _pool_lock = None, None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
 def _shared_pool() -> tuple[ThreadPoolExecutor, threading.BoundedSemaphore]:
     global _pool, _free
     with _pool_lock:
