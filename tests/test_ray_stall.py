@@ -181,3 +181,44 @@ def test_meshes_of_abandoned_rounds_are_not_blamed(monkeypatch):
     e._stream(None, items, {}, summary)
     assert failed == [] and summary.failed == 0
     assert summary.redone == 3 and summary.lost_nodes == ["node (n1)"]
+
+
+class ExecutorLoop:
+    """A stand-in for Ray Data's ``StreamingExecutor`` thread: a loop that checks ``_shutdown`` each step."""
+
+    def __init__(self, step_s: float = 0.05):
+        import threading
+
+        self._shutdown = False
+        self.steps = 0
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.step_s = step_s
+        self.thread.start()
+
+    def run(self):
+        import time
+
+        while not self._shutdown:
+            self.steps += 1
+            time.sleep(self.step_s)
+
+    def join(self, timeout=None):
+        self.thread.join(timeout)
+
+    def is_alive(self):
+        return self.thread.is_alive()
+
+
+def test_an_aborted_rounds_executor_loops_end_before_ray_is_shut_down():
+    loops = [ExecutorLoop(), ExecutorLoop()]
+    engine.end_executor_loops(loops, timeout_s=5.0)
+    assert not any(t.is_alive() for t in loops)
+
+
+def test_a_loop_that_does_not_stop_costs_at_most_the_timeout():
+    import time
+
+    stuck = ExecutorLoop(step_s=60.0)  # blocked in a step (as in ray.wait on a lost head)
+    t0 = time.monotonic()
+    engine.end_executor_loops([stuck], timeout_s=0.3)
+    assert time.monotonic() - t0 < 5.0 and stuck._shutdown

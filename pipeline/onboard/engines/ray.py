@@ -56,6 +56,8 @@ MESH_STRIKES = 2
 WATCH_PERIOD_S = 1.0
 #: seconds to wait, after Ray is shut down, for an aborted round's reader thread to end
 PUMP_JOIN_S = 10.0
+#: how long an aborted round's Ray Data executor loops get to stop before Ray is shut down
+EXECUTOR_JOIN_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,7 @@ class RayEngine(Engine):
             live += [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")]
         saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
         try:
+            end_executor_loops([t for t in live if t.name.startswith("StreamingExecutor")])
             if started:
                 try:
                     ray.shutdown()
@@ -538,6 +541,21 @@ class RayEngine(Engine):
             tables["meshes"] = pa.Table.from_pylist(meshes_rows, schema=schemas.MESHES)
         self.store.commit(tables, self.run_id)
         return len(lost)
+
+
+def end_executor_loops(threads: list, timeout_s: float = EXECUTOR_JOIN_S) -> None:
+    """Ask Ray Data's executor loops of an aborted round to stop at their next step and wait briefly, so
+    that ``ray.shutdown()`` does not pull the connection from under a loop blocked in ``ray.wait`` (Ray
+    then ends that thread with ``SystemExit``, which Python's thread hook drops but test runners report).
+    Ray Data has no public way to stop a dataset whose iterator is blocked in another thread; its
+    executor's own ``shutdown`` also tears down the operators, which can block on a lost cluster, so only
+    its loop's stop flag is set (``StreamingExecutor._shutdown``, checked after every scheduling step)."""
+    for t in threads:
+        if hasattr(t, "_shutdown"):
+            t._shutdown = True
+    deadline = time.monotonic() + timeout_s
+    for t in threads:
+        t.join(timeout=max(deadline - time.monotonic(), 0.0))
 
 
 def _captioner_pool(step: Step) -> bool:
