@@ -117,31 +117,32 @@ def ray_nodes(alive_after: int):
     return nodes, calls
 
 
-def test_settle_waits_for_rays_node_table(monkeypatch):
+def settling_watch(monkeypatch, alive_after: int):
+    """A ClusterWatch that lost node n1, over a ray.nodes() that reports it alive ``alive_after`` times,
+    with sleeps skipped; and the list of ray.nodes() calls."""
     import ray
 
     from pipeline.onboard.engines import ray_cluster
 
-    nodes, calls = ray_nodes(alive_after=3)
+    nodes, calls = ray_nodes(alive_after)
     monkeypatch.setattr(ray, "nodes", nodes)
     monkeypatch.setattr(ray_cluster.time, "sleep", lambda s: None)
     watch = object.__new__(ray_cluster.ClusterWatch)
     watch.lost = {"n1": None}
+    return watch, calls
+
+
+def test_settle_waits_for_rays_node_table(monkeypatch):
+    watch, calls = settling_watch(monkeypatch, alive_after=3)
     assert watch.settle(timeout_s=60) and len(calls) == 4
 
 
 def test_settle_gives_up_after_its_timeout(monkeypatch):
-    import ray
-
     from pipeline.onboard.engines import ray_cluster
 
-    nodes, calls = ray_nodes(alive_after=10**6)
+    watch, calls = settling_watch(monkeypatch, alive_after=10**6)
     clock = iter(range(0, 10**6, 10))
-    monkeypatch.setattr(ray, "nodes", nodes)
-    monkeypatch.setattr(ray_cluster.time, "sleep", lambda s: None)
     monkeypatch.setattr(ray_cluster.time, "monotonic", lambda: float(next(clock)))
-    watch = object.__new__(ray_cluster.ClusterWatch)
-    watch.lost = {"n1": None}
     assert not watch.settle(timeout_s=60) and len(calls) == 6  # at 10, 20, ..., 60 s: the deadline
 
 
