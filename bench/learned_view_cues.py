@@ -1,7 +1,7 @@
 """Three more ways to score ROI against views, replayed on feature dumps next to the shipped fusion.
 
     python bench/learned_view_cues.py --store STORE --train SYNTH_DUMP [--train DIR ...] --test PHOTO_DUMP \
-        [--cues chamfer,views24,joint]
+        [--cues chamfer,views24,joint,silhouette]
 
 The dumps are ``bench/learned_features.py``'s (224 px, unflipped, of the same store). Cues:
 
@@ -12,6 +12,8 @@ The dumps are ``bench/learned_features.py``'s (224 px, unflipped, of the same st
   as ``bench/learned_ltr.py`` fits them (synthetic dumps only, 5 folds by object).
 * ``views24``: 8 views per elevation ring instead of 4 (24 per model, rendered and embedded here), so
   the learned cosine is a max over twice the viewpoints; ``raw3`` and ``raw4`` refitted on it.
+* ``silhouette``: the IoU of the ROI's silhouette (off the render gray, cropped to its box, centred on a
+  square, 32 x 32) with each view's, max over the model's views, as a fifth cue (refitted).
 * ``joint``: the learned and descriptor cosines of the *same* view (max over views of their weighted sum)
   instead of each one's own best view, mixed with the shipped score by ``lam`` (shipped weights, no refit).
 
@@ -118,6 +120,36 @@ def views24(store: str, out: Path, enc) -> None:
     np.savez(out, views_cls=np.concatenate(embs), view_mesh=np.array(vm))
 
 
+def silhouette(im: Image.Image, grid: int = 32) -> np.ndarray:
+    """The image's pixels off the render gray, cropped to their box, centred on a square, ``grid`` x ``grid``."""
+    from pipeline.query.settings import GRAY
+
+    fg = np.abs(np.asarray(im.convert("RGB"), np.float32) - np.array(GRAY, np.float32)).sum(-1) > 8
+    ys, xs = np.nonzero(fg)
+    if len(ys) < 4:
+        return np.zeros(grid * grid, np.float32)
+    fg = fg[ys.min() : ys.max() + 1, xs.min() : xs.max() + 1]
+    h, w = fg.shape
+    side = max(h, w)
+    sq = np.zeros((side, side), np.uint8)
+    sq[(side - h) // 2 : (side - h) // 2 + h, (side - w) // 2 : (side - w) // 2 + w] = fg * 255
+    small = np.asarray(Image.fromarray(sq).resize((grid, grid), Image.Resampling.BILINEAR)) > 127
+    return small.reshape(-1).astype(np.float32)
+
+
+def silhouettes(store: str, dumps: list[Path]) -> None:
+    """Writes ``silhouette.npy`` (queries x models: best silhouette IoU over the model's views) into every dump."""
+    meshes = json.loads((dumps[0] / "meshes.json").read_text())
+    keys, views = view_images(store, meshes)
+    VS, vm = np.stack([silhouette(v) for v in views]), np.array([m for m, _ in keys])
+    for d in dumps:
+        recs = json.loads((d / "queries.json").read_text())
+        RS = np.stack([silhouette(Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png")) for r in recs])
+        inter = RS @ VS.T
+        iou = inter / np.maximum(RS.sum(1)[:, None] + VS.sum(1)[None] - inter, 1.0)
+        np.save(d / "silhouette.npy", per_model(iou, vm, len(meshes)))
+
+
 def rates(r: np.ndarray, kind: np.ndarray) -> str:
     return " ".join(
         f"{k} {np.mean(r[kind == k] <= 1):.3f}/{np.mean(r[kind == k] <= 5):.3f}" for k in np.unique(kind)
@@ -177,7 +209,7 @@ def main() -> int:
     p.add_argument("--store", required=True)
     p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
     p.add_argument("--test", required=True, help="the photos' dump")
-    p.add_argument("--cues", default="chamfer,views24,joint")
+    p.add_argument("--cues", default="chamfer,views24,joint,silhouette")
     args = p.parse_args()
     from pipeline.models.focus_encoder import LearnedViewEncoder
 
@@ -225,6 +257,20 @@ def main() -> int:
             return D
 
         refit(args.train, args.test, {"raw3": ltr.FEATSETS["raw3"], "raw4": raw4}, use_24)
+    if "silhouette" in cues:
+        silhouettes(args.store, dumps)
+
+        def add_silhouette(D, d):
+            D["silhouette"] = np.load(d / "silhouette.npy")
+            alone(D, d, "silhouette IoU", D["silhouette"])
+            return D
+
+        refit(
+            args.train,
+            args.test,
+            {"raw4": raw4, "raw4+silhouette": lambda D: [*raw4(D), D["silhouette"]]},
+            add_silhouette,
+        )
     if "joint" in cues:
         joint(args.store, dumps)
     return 0
