@@ -238,6 +238,22 @@ class ColourDescriptor:
         return unit(rows)
 
 
+class AspectEncoder:
+    """A stand-in learned encoder: the object's box aspect ratio only (blind to colour)."""
+
+    model_id = "fake-learned"
+    dim = 3
+
+    def encode_image(self, images):
+        rows = []
+        for im in images:
+            arr = np.abs(np.asarray(im.convert("RGB"), np.int16) - 205).sum(axis=2) > 30
+            ys, xs = np.nonzero(arr)
+            h, w = (np.ptp(ys) + 1, np.ptp(xs) + 1) if len(ys) else im.size[::-1]
+            rows.append([np.log(h / w), 1.0, 0.2])
+        return unit(rows)
+
+
 def fake_models() -> dict:
     return {"captioner": ColourCaptioner(), "text_encoder": WordEncoder(), "view_encoder": ColourDescriptor()}
 
@@ -261,8 +277,9 @@ FAKE_LIBRARY = {
 }
 
 
-def make_fake_store(path, library=FAKE_LIBRARY, **kw) -> Path:
-    """A store of ``library`` embedded with the fake adapters (keys of the offline profile's models)."""
+def make_fake_store(path, library=FAKE_LIBRARY, learned=None, **kw) -> Path:
+    """A store of ``library`` embedded with the fake adapters (keys of the offline profile's models), and
+    with ``learned`` view vectors too when that stand-in learned encoder is given."""
     models = fake_models()
     meshes = {}
     for name, (colour, w, h) in library.items():
@@ -274,4 +291,6 @@ def make_fake_store(path, library=FAKE_LIBRARY, **kw) -> Path:
             "views": models["view_encoder"].encode_image(views),
             "images": views,
         }
+        if learned is not None:
+            meshes[f"id-{name}"]["learned"] = learned.encode_image(views)
     return make_store(path, meshes, **kw)

@@ -5,27 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from query_helpers import FAKE_LIBRARY, fake_models, make_fake_store, make_store, object_image, unit
+from query_helpers import AspectEncoder, fake_models, make_fake_store, object_image
 
 from pipeline.query import QueryError, Retriever
 from pipeline.query.fusion import FusionWeights, fuse
 from pipeline.query.steps.text_terms import best_per_model
-
-
-class AspectEncoder:
-    """A stand-in learned encoder: the object's box aspect ratio only (blind to colour)."""
-
-    model_id = "fake-learned"
-    dim = 3
-
-    def encode_image(self, images):
-        rows = []
-        for im in images:
-            arr = np.abs(np.asarray(im.convert("RGB"), np.int16) - 205).sum(axis=2) > 30
-            ys, xs = np.nonzero(arr)
-            h, w = (np.ptp(ys) + 1, np.ptp(xs) + 1) if len(ys) else im.size[::-1]
-            rows.append([np.log(h / w), 1.0, 0.2])
-        return unit(rows)
 
 
 def test_fuse_is_a_weighted_mean_of_cosines():
@@ -60,18 +44,7 @@ def test_fusion_weights_are_checked(desc, text, prompt):
 @pytest.fixture(scope="module")
 def learned_store(tmp_path_factory):
     """The fake library with learned (aspect-only) view vectors as well."""
-    models, enc = fake_models(), AspectEncoder()
-    meshes = {}
-    for name, (colour, w, h) in FAKE_LIBRARY.items():
-        views = [object_image(colour, w, h), object_image(colour, int(w * 1.1), h)]
-        meshes[f"id-{name}"] = {
-            "name": name,
-            "captions": models["text_encoder"].encode_text(models["captioner"].caption(views)),
-            "views": models["view_encoder"].encode_image(views),
-            "learned": enc.encode_image(views),
-            "images": views,
-        }
-    return make_store(tmp_path_factory.mktemp("fusion") / "store", meshes)
+    return make_fake_store(tmp_path_factory.mktemp("fusion") / "store", learned=AspectEncoder())
 
 
 def models_with_learned():

@@ -7,18 +7,15 @@ import threading
 
 import numpy as np
 import pytest
-from query_helpers import FAKE_LIBRARY, fake_models, make_store, object_image, unit
+from query_helpers import AspectEncoder, fake_models, make_fake_store, object_image
 
 from pipeline.query import Retriever
 from pipeline.query import overlap as overlap_mod
 from pipeline.query.overlap import OVERLAP_ENV, beside, overlapping
 
 
-class ThreadRecordingEncoder:
-    """A stand-in learned encoder (box aspect ratio) that records the thread each call ran in."""
-
-    model_id = "fake-learned"
-    dim = 3
+class ThreadRecordingEncoder(AspectEncoder):
+    """The aspect-ratio stand-in learned encoder, recording the thread each call ran in."""
 
     def __init__(self, fail: bool = False):
         self.threads: list[str] = []
@@ -28,29 +25,12 @@ class ThreadRecordingEncoder:
         self.threads.append(threading.current_thread().name)
         if self.fail:
             raise RuntimeError("encoder broke")
-        rows = []
-        for im in images:
-            arr = np.abs(np.asarray(im.convert("RGB"), np.int16) - 205).sum(axis=2) > 30
-            ys, xs = np.nonzero(arr)
-            h, w = (np.ptp(ys) + 1, np.ptp(xs) + 1) if len(ys) else im.size[::-1]
-            rows.append([np.log(h / w), 1.0, 0.2])
-        return unit(rows)
+        return super().encode_image(images)
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
-    models, enc = fake_models(), ThreadRecordingEncoder()
-    meshes = {}
-    for name, (colour, w, h) in FAKE_LIBRARY.items():
-        views = [object_image(colour, w, h)]
-        meshes[f"id-{name}"] = {
-            "name": name,
-            "captions": models["text_encoder"].encode_text(models["captioner"].caption(views)),
-            "views": models["view_encoder"].encode_image(views),
-            "learned": enc.encode_image(views),
-            "images": views,
-        }
-    return make_store(tmp_path_factory.mktemp("overlap") / "store", meshes)
+    return make_fake_store(tmp_path_factory.mktemp("overlap") / "store", learned=AspectEncoder())
 
 
 @pytest.fixture
