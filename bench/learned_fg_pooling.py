@@ -41,17 +41,23 @@ from learned_fusion import (  # noqa: E402
 POOLS = ("cls", "fgmean", "fgw", "fggem", "fgmax")
 
 
-def pooled_features(images, enc, size: int) -> dict[str, np.ndarray]:
+def foreground_share(im, fill: tuple[int, int, int], size: int) -> np.ndarray:
+    """Per 14 px patch of ``im`` as the encoder sees it (square on ``fill``, ``size`` px), the share of its
+    pixels off the render gray, in token order."""
     from pipeline.models.focus_encoder import square_on
 
-    fill, g = np.array(enc.fill, np.float32), size // 14
+    g = size // 14
+    sq = square_on(im, tuple(fill)).resize((size, size), Image.Resampling.BILINEAR)
+    fg = (np.abs(np.asarray(sq, np.float32) - np.array(fill, np.float32)).sum(-1) > 8).astype(np.float32)
+    return fg.reshape(g, 14, g, 14).mean(axis=(1, 3)).reshape(-1)
+
+
+def pooled_features(images, enc, size: int) -> dict[str, np.ndarray]:
     out = {k: [] for k in POOLS}
     for i in range(0, len(images), 32):
         batch = images[i : i + 32]
         for im, t in zip(batch, enc.tokens(batch), strict=True):
-            sq = square_on(im, tuple(enc.fill)).resize((size, size), Image.Resampling.BILINEAR)
-            fg = (np.abs(np.asarray(sq, np.float32) - fill).sum(-1) > 8).astype(np.float32)
-            w = fg.reshape(g, 14, g, 14).mean(axis=(1, 3)).reshape(-1)
+            w = foreground_share(im, enc.fill, size)
             p, sel = t[1:], w > 0.5
             if sel.sum() < 2:
                 sel = w >= w.max() - 1e-6
@@ -134,13 +140,23 @@ def main() -> int:
     for k, L in learned.items():
         r = ranks_of(L, expected)
         m, b = r[kind == "mask"], r[kind == "box"]
-        print(f"learned alone {k:7s} mask {np.mean(m <= 1):.3f}/{np.mean(m <= 5):.3f}  box {np.mean(b <= 1):.3f}/{np.mean(b <= 5):.3f}")
-    methods = [("spread", [0]), ("zsum", [0]), ("zpeak", [0.5, 1, 2]), ("zgap", [0.5, 1, 2]), ("rrf", [1, 5, 20])]
+        print(
+            f"learned alone {k:7s} mask {np.mean(m <= 1):.3f}/{np.mean(m <= 5):.3f}  box {np.mean(b <= 1):.3f}/{np.mean(b <= 5):.3f}"
+        )
+    methods = [
+        ("spread", [0]),
+        ("zsum", [0]),
+        ("zpeak", [0.5, 1, 2]),
+        ("zgap", [0.5, 1, 2]),
+        ("rrf", [1, 5, 20]),
+    ]
     grid = [(n, k, p, wv) for n, ps in methods for k in learned for p in ps for wv in (0.0, 0.1, 0.3)]
     table = np.stack([ranks_of(fused(n, learned[k], p, wv), expected) for n, k, p, wv in grid])
     for g, r in zip(grid, table, strict=True):
         m, b = r[kind == "mask"], r[kind == "box"]
-        print(f"fused {str(g):34s} mask {np.mean(m <= 1):.3f}/{np.mean(m <= 5):.3f}  box {np.mean(b <= 1):.3f}/{np.mean(b <= 5):.3f}")
+        print(
+            f"fused {str(g):34s} mask {np.mean(m <= 1):.3f}/{np.mean(m <= 5):.3f}  box {np.mean(b <= 1):.3f}/{np.mean(b <= 5):.3f}"
+        )
     held = np.zeros(len(recs), int)
     for ph in np.unique(photo):
         test = photo == ph
@@ -153,7 +169,9 @@ def main() -> int:
         t1, t5 = (held[s] <= 1).astype(float), (held[s] <= 5).astype(float)
         lo1, hi1 = bootstrap(t1, photo[s])
         lo5, hi5 = bootstrap(t5, photo[s])
-        print(f"held out ({kd}): top-1 {t1.mean():.3f} [{lo1:.2f}, {hi1:.2f}], top-5 {t5.mean():.3f} [{lo5:.2f}, {hi5:.2f}]")
+        print(
+            f"held out ({kd}): top-1 {t1.mean():.3f} [{lo1:.2f}, {hi1:.2f}], top-5 {t5.mean():.3f} [{lo5:.2f}, {hi5:.2f}]"
+        )
     return 0
 
 

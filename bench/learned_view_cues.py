@@ -39,6 +39,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
 from learned_features import view_images  # noqa: E402
+from learned_fg_pooling import foreground_share  # noqa: E402
 from learned_fusion import l2, ranks_of  # noqa: E402
 
 SIZE = 224
@@ -47,16 +48,11 @@ SIZE = 224
 def fg_patches(images, enc) -> tuple[np.ndarray, np.ndarray]:
     """L2-normalised final-layer patch tokens on the object (over half the 14 px patch off the render gray),
     concatenated, and each image's offsets into them."""
-    from pipeline.models.focus_encoder import square_on
-
-    fill, g = np.array(enc.fill, np.float32), SIZE // 14
     toks, offs = [], [0]
     for i in range(0, len(images), 32):
         batch = images[i : i + 32]
         for im, t in zip(batch, enc.tokens(batch), strict=True):
-            sq = square_on(im, tuple(enc.fill)).resize((SIZE, SIZE), Image.Resampling.BILINEAR)
-            fg = (np.abs(np.asarray(sq, np.float32) - fill).sum(-1) > 8).astype(np.float32)
-            w = fg.reshape(g, 14, g, 14).mean(axis=(1, 3)).reshape(-1)
+            w = foreground_share(im, enc.fill, SIZE)
             sel = w > 0.5
             if sel.sum() < 2:
                 sel = w >= np.sort(w)[-2]
