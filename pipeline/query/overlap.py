@@ -80,6 +80,6 @@ def beside(fn: Callable[[], T]) -> Future[T]:
     done: Future[T] = Future()
     try:
         done.set_result(fn())
-    except BaseException as exc:  # re-raised by .result(), in the caller's order, as the pool would
-        done.set_exception(exc)
+    except Exception as exc:  # re-raised by .result(), in the caller's order, as the pool would
+        done.set_exception(exc)  # (a Ctrl-C is not held back: it stops the query now, as before)
     return done

@@ -155,11 +155,11 @@ class RayEngine(Engine):
         import ray._private.auto_init_hook as auto_init
 
         live = [t for t in self._pumps if t.is_alive()]
-        if live:
-            live += [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")]
+        executors = [t for t in threading.enumerate() if t.name.startswith("StreamingExecutor")] if live else []
+        live += executors
         saved, auto_init.enable_auto_connect = auto_init.enable_auto_connect, False
         try:
-            end_executor_loops([t for t in live if t.name.startswith("StreamingExecutor")])
+            end_executor_loops(executors)
             if started:
                 try:
                     ray.shutdown()
