@@ -184,15 +184,16 @@ def joint(store: str, dumps: list[Path]) -> None:
             print(f"joint {d.name} lam {lam}: {rates(r, D['kind'])}")
 
 
-def refit(trains: list[str], test: str, featsets: dict, patch) -> None:
-    """``bench/learned_ltr.py``'s fit and report, with ``patch`` adding cues to every loaded dump."""
+def refit(trains: list[str], test: str, featsets: dict, patch, simplest: str = "raw4") -> None:
+    """``bench/learned_ltr.py``'s fit and report, with ``patch`` adding cues to every loaded dump; the
+    paired gains are printed against ``simplest``."""
     plain = ltr.load
 
     def load(d):
         return patch(plain(d), Path(d))
 
     saved = ltr.load, ltr.FEATSETS, ltr.SIMPLEST, sys.argv
-    ltr.load, ltr.FEATSETS, ltr.SIMPLEST = load, featsets, "raw4"
+    ltr.load, ltr.FEATSETS, ltr.SIMPLEST = load, featsets, simplest
     sys.argv = [sys.argv[0], *sum((["--train", t] for t in trains), []), "--test", test]
     try:
         ltr.main()

