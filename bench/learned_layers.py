@@ -76,7 +76,9 @@ def dump_layers(store: str, dumps: list[Path]) -> None:
     for d in todo:
         recs = json.loads((d / "queries.json").read_text())
         rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
-        np.savez(d / CACHE, views=V, rois=block_cls(rois, net, bf16), view_mesh=np.array([k[0] for k in keys]))
+        np.savez(
+            d / CACHE, views=V, rois=block_cls(rois, net, bf16), view_mesh=np.array([k[0] for k in keys])
+        )
 
 
 def layer_scores(d: Path, layer: int, n: int) -> np.ndarray:
@@ -99,7 +101,9 @@ def main() -> int:
     p.add_argument("--store", required=True)
     p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
     p.add_argument("--test", required=True, help="the photos' dump")
-    p.add_argument("--layers", default="8,9,10,11,12", help="blocks to compare (1-based); the last is the baseline")
+    p.add_argument(
+        "--layers", default="8,9,10,11,12", help="blocks to compare (1-based); the last is the baseline"
+    )
     args = p.parse_args()
     dumps = [Path(d) for d in (*args.train, args.test)]
     dump_layers(args.store, dumps)
@@ -108,7 +112,9 @@ def main() -> int:
     for d in dumps:
         D = ltr.load(d)
         for k in layers:
-            print(f"block {k} alone, {d.name}: {rates(ranks_of(layer_scores(d, k, D['desc'].shape[1]), D['exp']), D['kind'])}")
+            print(
+                f"block {k} alone, {d.name}: {rates(ranks_of(layer_scores(d, k, D['desc'].shape[1]), D['exp']), D['kind'])}"
+            )
 
     def with_layers(D, d):
         for k in layers:

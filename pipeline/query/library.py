@@ -118,8 +118,8 @@ def check_learned(onboarding: Onboarding, spec, store_root) -> None:
         raise QueryError(
             f"store {store_root} was onboarded with learned_encoder "
             f"{onboarding.models.get('learned_encoder')} under other options than the query's {spec.key()} "
-            f"{spec.options}: pass the same --model overrides as at onboarding, query with "
-            "--model learned_encoder=none, or onboard again"
+            f"{spec.options}: onboard the library again (only the learned view embeddings are recomputed), "
+            "query with --model learned_encoder=none, or pass the same --model overrides as at onboarding"
         )
 
 
