@@ -12,7 +12,10 @@ only, 5 folds by object, the photos never fitted on), in place of the shipped cu
 * ``L11_280``, ``L11_336``: block 11's CLS at a larger input;
 * ``L10+L11_224``, ``L10+L11_280``: blocks 10 and 11's CLS concatenated (each L2-normalised);
 * ``FG11_224``: the foreground patch mean instead of the CLS token; ``raw4+FG11``: beside it, as a fifth cue;
-* ``avg224+336``: the mean of the 224 and 336 px cosines.
+* ``avg224+336``: the mean of the 224 and 336 px cosines;
+* ``flip``: view and ROI embeddings averaged with their mirror images' (cached as ``block11_224_extra.npz``);
+* ``m5``, ``m10``, ``m20``: the ROI framed by 5, 10 or 20 % of its long side of render gray (the
+  ``roi_margin`` option; views unchanged).
 
 Printed: each cue alone, each fusion held out, and the paired held-out synthetic top-1 gain over the shipped
 ``raw4``. The rule of ``bench/learned_layers.py`` decides (a gain with a 95 % interval above zero).
@@ -42,6 +45,7 @@ from learned_layers import layer_scores  # noqa: E402
 from learned_view_cues import per_model, rates, refit  # noqa: E402
 
 SIZES = (224, 280, 336)
+MARGINS = (5, 10, 20)
 BLOCK = 11
 VARIANTS = {
     "L11_280": (280, "L11"),
@@ -113,6 +117,45 @@ def dump_variants(store: str, dumps: list[Path]) -> None:
             )
 
 
+def dump_extra(store: str, dumps: list[Path]) -> None:
+    """Writes ``block11_224_extra.npz`` (mirrored views and ROIs, framed ROIs: block 11's CLS) into every dump."""
+    import torch
+
+    from pipeline.models.focus_encoder import bf16_pays, first_blocks, with_margin
+    from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+    from pipeline.query.settings import GRAY
+
+    if all((d / "block11_224_extra.npz").exists() for d in dumps):
+        return
+    net = first_blocks(load_backbone(focus_backbone_dir()), BLOCK)
+    bf16 = bf16_pays(torch.device("cpu"))
+
+    def cls(images):
+        return block_tokens(images, net, 224, bf16)["L11"]
+
+    def mirrored(images):
+        return [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
+
+    meshes = json.loads((dumps[0] / "meshes.json").read_text())
+    _, views = view_images(store, meshes)
+    views_flip = cls(mirrored(views))
+    for d in dumps:
+        recs = json.loads((d / "queries.json").read_text())
+        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
+        framed = {f"rois_m{m}": cls([with_margin(im, m / 100, tuple(GRAY)) for im in rois]) for m in MARGINS}
+        np.savez(d / "block11_224_extra.npz", views_flip=views_flip, rois_flip=cls(mirrored(rois)), **framed)
+
+
+def extra_scores(d: Path, n: int) -> dict[str, np.ndarray]:
+    """(queries, models) per extra variant: ``flip`` and ``m<percent>``, against the shipped cue's views."""
+    a, b = np.load(d / "layers_224.npz"), np.load(d / "block11_224_extra.npz")
+    views, rois, vm = l2(a["views"][BLOCK - 1]), l2(a["rois"][BLOCK - 1]), a["view_mesh"]
+    both_v, both_r = l2(views + l2(b["views_flip"])), l2(rois + l2(b["rois_flip"]))
+    out = {"flip": per_model(both_r @ both_v.T, vm, n)}
+    out |= {f"m{m}": per_model(l2(b[f"rois_m{m}"]) @ views.T, vm, n) for m in MARGINS}
+    return out
+
+
 def variant_scores(d: Path, size: int, key: str, n: int) -> np.ndarray:
     """(queries, models): best cosine over a model's views of the variant (``+`` concatenates)."""
     a = np.load(d / f"block11_{size}.npz")
@@ -137,6 +180,8 @@ def main() -> int:
     args = p.parse_args()
     dumps = [Path(d) for d in (*args.train, args.test)]
     dump_variants(args.store, dumps)
+    dump_extra(args.store, dumps)
+    extras = ("flip", *(f"m{m}" for m in MARGINS))
 
     def with_variants(D, d):
         n = D["desc"].shape[1]
@@ -145,10 +190,13 @@ def main() -> int:
         for name, (size, key) in VARIANTS.items():
             D[name] = variant_scores(d, size, key, n)
             print(f"{name} alone, {d.name}: {rates(ranks_of(D[name], D['exp']), D['kind'])}")
+        for name, sc in extra_scores(d, n).items():
+            D[name] = sc
+            print(f"{name} alone, {d.name}: {rates(ranks_of(sc, D['exp']), D['kind'])}")
         return D
 
     raw4 = ltr.FEATSETS["raw4"]
-    featsets = {"raw4": raw4} | {name: in_place(name) for name in VARIANTS}
+    featsets = {"raw4": raw4} | {name: in_place(name) for name in (*VARIANTS, *extras)}
     featsets["raw4+FG11"] = lambda D: [*raw4(D), D["FG11_224"]]
     featsets["avg224+336"] = lambda D: [(D["L"]["cls"] + D["L11_336_cos"]) / 2, *raw4(D)[1:]]
     refit(args.train, args.test, featsets, with_variants)
