@@ -133,11 +133,13 @@ def test_z_score_features_need_enough_models_to_judge():
     cal = Calibration("offline", {}, {"two-stage+verify": zmodel, "two-stage": model(threshold=0.5)})
     feats = {"score": 0.7, "margin": 0.2, "score_z": 1.6, "learned_z": 1.2}
     few = judge(cal, feats, "two-stage+verify", samples={"candidates": 4, "cohort": 4})
-    assert few.accepted is None and few.confidence is None and "at least" in few.note and "has 4" in few.note
+    assert few.accepted is None and few.confidence is None and f"at least {MIN_Z_SAMPLE} scores" in few.note
+    assert "score_z over 4 ranked models" in few.note and "learned_z over 4 library models" in few.note
     cohort_small = judge(
         cal, feats, "two-stage+verify", samples={"candidates": 50, "cohort": MIN_Z_SAMPLE - 1}
     )
-    assert cohort_small.accepted is None and "learned_z" in cohort_small.note
+    assert cohort_small.accepted is None and f"learned_z over {MIN_Z_SAMPLE - 1} library models" in cohort_small.note
+    assert "score_z" not in cohort_small.note
     enough = judge(
         cal, feats, "two-stage+verify", samples={"candidates": MIN_Z_SAMPLE, "cohort": MIN_Z_SAMPLE}
     )

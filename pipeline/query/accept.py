@@ -54,6 +54,8 @@ COHORT_SIZE = 1024
 #: features that are z-scores over a sample of the answer's own scores: the ranked candidates' keys
 #: (``score_z``, ``margin_z``) or the library's cohort (``cohort_z``, ``learned_z``)
 Z_FEATURES = {"score_z": "candidates", "margin_z": "candidates", "cohort_z": "cohort", "learned_z": "cohort"}
+#: how a verdict's note names each sample of :data:`Z_FEATURES`
+Z_SAMPLE_NAMES = {"candidates": "ranked models", "cohort": "library models"}
 #: the fewest scores a z-score feature is read from before a verdict that uses it is given: over a handful
 #: of models the best one cannot stand out (at most sqrt(n - 1) standard deviations), so a right answer in a
 #: 4-model library looked like an absent object's
@@ -340,9 +342,9 @@ def judge(
         if f in Z_FEATURES and (samples or {}).get(Z_FEATURES[f], MIN_Z_SAMPLE) < MIN_Z_SAMPLE
     ]
     if small:
-        n = min(samples[Z_FEATURES[f]] for f in small)
-        note = (f"the acceptance model reads {', '.join(small)}, z-scores over the library's models, "
-                f"which need at least {MIN_Z_SAMPLE} of them; this ranking has {n}")  # fmt: skip
+        over = [f"{f} over {samples[Z_FEATURES[f]]} {Z_SAMPLE_NAMES[Z_FEATURES[f]]}" for f in small]
+        note = (f"the acceptance model reads z-scores, which need at least {MIN_Z_SAMPLE} scores: "
+                f"{', '.join(over)}")  # fmt: skip
         return Verdict(None, None, t, variant, feats, note)
     conf = model.confidence(feats)
     if conf is None:
