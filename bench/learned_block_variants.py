@@ -24,7 +24,6 @@ Results: docs/results.md, section 7.3.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -42,7 +41,7 @@ from learned_features import view_images  # noqa: E402
 from learned_fg_pooling import foreground_share  # noqa: E402
 from learned_fusion import l2, ranks_of  # noqa: E402
 from learned_layers import layer_scores  # noqa: E402
-from learned_view_cues import per_model, rates, refit  # noqa: E402
+from learned_view_cues import in_raw4, per_model, rates, refit, replay_parser  # noqa: E402
 
 SIZES = (224, 280, 336)
 MARGINS = (5, 10, 20)
@@ -165,18 +164,8 @@ def variant_scores(d: Path, size: int, key: str, n: int) -> np.ndarray:
     return per_model(l2(r) @ l2(v).T, a["view_mesh"], n)
 
 
-def in_place(name: str):
-    def cues(D):
-        return [D[name], *ltr.FEATSETS["raw4"](D)[1:]]
-
-    return cues
-
-
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--store", required=True)
-    p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
-    p.add_argument("--test", required=True, help="the photos' dump")
+    p = replay_parser(__doc__)
     args = p.parse_args()
     dumps = [Path(d) for d in (*args.train, args.test)]
     dump_variants(args.store, dumps)
@@ -196,7 +185,7 @@ def main() -> int:
         return D
 
     raw4 = ltr.FEATSETS["raw4"]
-    featsets = {"raw4": raw4} | {name: in_place(name) for name in (*VARIANTS, *extras)}
+    featsets = {"raw4": raw4} | {name: in_raw4(name) for name in (*VARIANTS, *extras)}
     featsets["raw4+FG11"] = lambda D: [*raw4(D), D["FG11_224"]]
     featsets["avg224+336"] = lambda D: [(D["L"]["cls"] + D["L11_336_cos"]) / 2, *raw4(D)[1:]]
     refit(args.train, args.test, featsets, with_variants)

@@ -52,11 +52,15 @@ def learned_scores(
     if flip:
         b = np.load(feats / f"feat_{size}_1.npz")
         views, rois = l2(views + l2(b[f"views_{pool}"])), l2(rois + l2(b[f"rois_{pool}"]))
-    s = rois @ views.T
-    mesh = a["view_mesh"]
-    out = np.full((len(rois), n_meshes), -1.0, np.float32)
+    return best_per_model(rois @ views.T, a["view_mesh"], n_meshes)
+
+
+def best_per_model(s: np.ndarray, view_mesh: np.ndarray, n_meshes: int) -> np.ndarray:
+    """(queries, meshes) from (queries, views) scores: each mesh's best view (``view_mesh``: each view's
+    mesh index; every mesh must have a view)."""
+    out = np.full((len(s), n_meshes), -1.0, s.dtype)
     for j in range(n_meshes):
-        out[:, j] = s[:, mesh == j].max(axis=1)
+        out[:, j] = s[:, view_mesh == j].max(axis=1)
     return out
 
 

@@ -18,7 +18,6 @@ the last block if none has. Results: docs/results.md, section 7.3.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -34,7 +33,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import learned_ltr as ltr  # noqa: E402
 from learned_features import view_images  # noqa: E402
 from learned_fusion import ranks_of  # noqa: E402
-from learned_view_cues import rates, refit  # noqa: E402
+from learned_view_cues import in_raw4, rates, refit, replay_parser  # noqa: E402
 
 SIZE = 224
 CACHE = "layers_224.npz"
@@ -86,20 +85,8 @@ def layer_scores(d: Path, layer: int, n: int) -> np.ndarray:
     return ltr.block_scores(d, layer, n)
 
 
-def block_in_raw4(layer: int):
-    """The ``raw4`` cue set with block ``layer``'s CLS cosine in place of the last block's."""
-
-    def cues(D):
-        return [D[f"L{layer}"], *ltr.FEATSETS["raw4"](D)[1:]]
-
-    return cues
-
-
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--store", required=True)
-    p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
-    p.add_argument("--test", required=True, help="the photos' dump")
+    p = replay_parser(__doc__)
     p.add_argument(
         "--layers", default="8,9,10,11,12", help="blocks to compare (1-based); the last is the baseline"
     )
@@ -121,7 +108,7 @@ def main() -> int:
         return D
 
     featsets = {"raw4": ltr.FEATSETS["raw4"]}  # the last block, as the product embedded it into the dumps
-    featsets |= {f"L{k}": block_in_raw4(k) for k in layers if k != last}
+    featsets |= {f"L{k}": in_raw4(f"L{k}") for k in layers if k != last}
     refit(args.train, args.test, featsets, with_layers)
     return 0
 

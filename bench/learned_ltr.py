@@ -29,9 +29,11 @@ from learned_fusion import (  # noqa: E402
     INLIER_CAP,
     INLIER_FLOOR,
     VERIFY_TOP,
+    best_per_model,
     bootstrap,
     dumped_cues,
     fuse,
+    l2,
     learned_scores,
     ranks_of,
 )
@@ -62,13 +64,7 @@ def block_scores(d: Path, block: int, n: int) -> np.ndarray | None:
     if not path.exists():
         return None
     a = np.load(path)
-    views, rois = a["views"][block - 1], a["rois"][block - 1]
-    views = views / np.linalg.norm(views, axis=1, keepdims=True)
-    s = (rois / np.linalg.norm(rois, axis=1, keepdims=True)) @ views.T
-    out = np.full((len(rois), n), -1.0, np.float32)
-    for j in range(n):
-        out[:, j] = s[:, a["view_mesh"] == j].max(axis=1)
-    return out
+    return best_per_model(l2(a["rois"][block - 1]) @ l2(a["views"][block - 1]).T, a["view_mesh"], n)
 
 
 def load(d: Path):

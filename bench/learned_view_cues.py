@@ -40,6 +40,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import learned_ltr as ltr  # noqa: E402
 from learned_features import view_images  # noqa: E402
 from learned_fg_pooling import foreground_share  # noqa: E402
+from learned_fusion import best_per_model as per_model  # noqa: E402
 from learned_fusion import l2, ranks_of  # noqa: E402
 
 SIZE = 224
@@ -61,8 +62,22 @@ def fg_patches(images, enc) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(toks), np.array(offs)
 
 
-def per_model(s: np.ndarray, view_model: np.ndarray, n: int) -> np.ndarray:
-    return np.stack([s[:, view_model == j].max(axis=1) for j in range(n)], axis=1)
+def in_raw4(name: str):
+    """The shipped cue set (``raw4``) with the cue ``D[name]`` in place of its learned cosine."""
+
+    def cues(D):
+        return [D[name], *ltr.FEATSETS["raw4"](D)[1:]]
+
+    return cues
+
+
+def replay_parser(doc: str) -> argparse.ArgumentParser:
+    """The arguments every dump replay takes: the store, the synthetic dumps fitted on, the photos' dump."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--store", required=True)
+    p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
+    p.add_argument("--test", required=True, help="the photos' dump")
+    return p
 
 
 def chamfer(store: str, dumps: list[Path], enc) -> None:
@@ -202,10 +217,7 @@ def refit(trains: list[str], test: str, featsets: dict, patch, simplest: str = "
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--store", required=True)
-    p.add_argument("--train", action="append", required=True, help="a synthetic dump (repeatable)")
-    p.add_argument("--test", required=True, help="the photos' dump")
+    p = replay_parser(__doc__)
     p.add_argument("--cues", default="chamfer,views24,joint,silhouette")
     args = p.parse_args()
     from pipeline.models.focus_encoder import LearnedViewEncoder
@@ -236,7 +248,7 @@ def main() -> int:
                 "raw4+q2v": lambda D: [*raw4(D), D["q2v"]],
                 "raw4+v2q": lambda D: [*raw4(D), D["v2q"]],
                 "raw4+sym": lambda D: [*raw4(D), D["sym"]],
-                "sym-for-cls": lambda D: [D["sym"], *raw4(D)[1:]],
+                "sym-for-cls": in_raw4("sym"),
             },
             add_chamfer,
         )
