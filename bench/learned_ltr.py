@@ -5,8 +5,8 @@
 The ``raw4`` fit (rounded) is the shipped fusion (docs/results.md, section 7.2): the set the selection rule
 printed last picks (the simplest, ``raw3``, unless another beats it held out with a paired interval above 0). The dumps are ``bench/learned_features.py``'s (224 px,
 unflipped). Their learned cues are the last block's; the shipped fusion (the "shipped" lines) pools block 11
-(docs/results.md, section 7.3), read from ``bench/learned_layers.py``'s ``layers_224.npz`` in each dump (run
-that bench on a dump first). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
+(docs/results.md, section 7.3) of images whose foreground is normalised to one exposure (section 7.4), read
+from ``bench/learned_exposure.py``'s ``exposure_110.npz`` in each dump (run that bench on a dump first). For each feature set the weights (cues, verification bonus, a temperature) maximise the mean
 log-probability of the right mesh under a softmax over the library, on the training dumps only. Printed:
 the shipped fusion's top-1 / top-5 on every dump; per feature set the fitted weights (normalised to
 sum |w| = 1), the training dumps' held-out numbers (5 folds by object label) and the photos' (never used
@@ -57,6 +57,23 @@ def shipped_block() -> int | None:
     return get_profile("offline").learned_encoder.options.get("layer")
 
 
+def shipped_exposure() -> float | None:
+    """The foreground luminance the offline profile's learned encoder normalises to (``None``: off)."""
+    from pipeline.profiles import get_profile
+
+    return get_profile("offline").learned_encoder.options.get("exposure") or None
+
+
+def exposure_scores(d: Path, target: float, n: int) -> np.ndarray | None:
+    """(queries, models): best cosine over a model's views of the shipped block's CLS on images normalised
+    to ``target`` (``bench/learned_exposure.py``'s ``exposure_<target>.npz``); ``None`` when not dumped."""
+    path = d / f"exposure_{target:g}.npz"
+    if not path.exists():
+        return None
+    a = np.load(path)
+    return best_per_model(l2(a["rois"]) @ l2(a["views"]).T, a["view_mesh"], n)
+
+
 def block_scores(d: Path, block: int, n: int) -> np.ndarray | None:
     """(queries, models): best cosine over a model's views of block ``block``'s CLS token (1-based), from
     ``bench/learned_layers.py``'s ``layers_224.npz`` in the dump; ``None`` when the dump has none."""
@@ -74,8 +91,11 @@ def load(d: Path):
     n = len(json.loads((d / "meshes.json").read_text()))
     desc, text, inl, exp, kind, photo = dumped_cues(recs)
     L = {p: learned_scores(d, 224, 0, p, n) for p in ("cls", "mean", "patch")}
-    block = shipped_block()
-    L["shipped"] = L["cls"] if block is None else block_scores(d, block, n)
+    block, exposure = shipped_block(), shipped_exposure()
+    if exposure is not None:
+        L["shipped"] = exposure_scores(d, exposure, n)
+    else:
+        L["shipped"] = L["cls"] if block is None else block_scores(d, block, n)
     troi = np.array([r["text_roi"] for r in recs], np.float32)
     tpr = np.array([r["text_prompt"] for r in recs], np.float32)
     label = np.array([r["label"] for r in recs])
@@ -143,6 +163,32 @@ def fit(Fs, bs, exps, lam=1e-3):
     return w / s, wv / s
 
 
+def cv_ranks(trains: list[dict], fn, k: int = 5) -> list[np.ndarray]:
+    """Held-out ranks of every training dump's queries under feature set ``fn``: ``k`` folds by object
+    label (one shuffle, seed 0), each fold ranked by weights fitted on the other folds of every dump."""
+    labels = np.unique(np.concatenate([D["label"] for D in trains]))
+    rng = np.random.default_rng(0)
+    folds = {lab: i % k for i, lab in enumerate(rng.permutation(labels))}
+    held = [np.zeros(len(D["recs"]), int) for D in trains]
+    for f in range(k):
+        Fs, bs, exps = [], [], []
+        for D in trains:
+            tr = np.array([folds[x] != f for x in D["label"]])
+            Fs.append(np.stack(fn(D))[:, tr])
+            bs.append(bonus(D)[tr])
+            exps.append([e for e, t in zip(D["exp"], tr, strict=True) if t])
+        w, wv = fit(Fs, bs, exps)
+        for D, h in zip(trains, held, strict=True):
+            te = np.array([folds[x] == f for x in D["label"]])
+            h[te] = ranks_of(scores(np.stack(fn(D)), w, bonus(D), wv), D["exp"])[te]
+    return held
+
+
+def fit_all(trains: list[dict], fn) -> tuple[np.ndarray, float]:
+    """Feature set ``fn``'s weights fitted on every training dump (the weights a fusion would ship)."""
+    return fit([np.stack(fn(D)) for D in trains], [bonus(D) for D in trains], [D["exp"] for D in trains])
+
+
 def rates(r, groups):
     t1, t5 = (r <= 1).astype(float), (r <= 5).astype(float)
     a, b = bootstrap(t1, groups), bootstrap(t5, groups)
@@ -158,8 +204,12 @@ def shipped(D):
     """Ranks under the shipped fusion: the shipped block's learned cosine, the ROI caption's and the prompt's
     text scores weighed apart."""
     if D["L"]["shipped"] is None:
+        exposure = shipped_exposure()
         raise SystemExit(
-            f"the dump has no block-{shipped_block()} features (the shipped learned cue): "
+            f"the dump has no exposure-{exposure:g} features (the shipped learned cue): "
+            "run bench/learned_exposure.py on it first"
+            if exposure is not None
+            else f"the dump has no block-{shipped_block()} features (the shipped learned cue): "
             "run bench/learned_layers.py on it first"
         )
     wd, wt, wp, wv = shipped_weights()
@@ -199,25 +249,9 @@ def main():
         print("train-set shipped", rates(shipped(D), D["label"]))
     pooled = {}
     for name, fn in FEATSETS.items():
-        # leave-object-out on the synthetic sets (in-domain check)
-        labels = np.unique(np.concatenate([D["label"] for D in trains]))
-        rng = np.random.default_rng(0)
-        folds = {lab: i % 5 for i, lab in enumerate(rng.permutation(labels))}
-        held = [np.zeros(len(D["recs"]), int) for D in trains]
-        for f in range(5):
-            Fs, bs, exps = [], [], []
-            for D in trains:
-                tr = np.array([folds[x] != f for x in D["label"]])
-                Fs.append(np.stack(fn(D))[:, tr])
-                bs.append(bonus(D)[tr])
-                exps.append([e for e, t in zip(D["exp"], tr, strict=True) if t])
-            w, wv = fit(Fs, bs, exps)
-            for D, h in zip(trains, held, strict=True):
-                te = np.array([folds[x] == f for x in D["label"]])
-                r = ranks_of(scores(np.stack(fn(D)), w, bonus(D), wv), D["exp"])
-                h[te] = r[te]
+        held = cv_ranks(trains, fn)
         cv = [rates(h, D["label"]) for D, h in zip(trains, held, strict=True)]
-        w, wv = fit([np.stack(fn(D)) for D in trains], [bonus(D) for D in trains], [D["exp"] for D in trains])
+        w, wv = fit_all(trains, fn)
         r = ranks_of(scores(np.stack(fn(test)), w, bonus(test), wv), test["exp"])
         out = {k: rates(r[test["kind"] == k], test["photo"][test["kind"] == k]) for k in ("mask", "box")}
         print(name, "w", np.round(w, 3), "wv", round(float(wv), 3), "| synth CV", cv, "| photos", out)

