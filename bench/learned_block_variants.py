@@ -37,9 +37,9 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
-from learned_features import view_images  # noqa: E402
+from learned_features import dump_rois, view_images  # noqa: E402
 from learned_fg_pooling import foreground_share  # noqa: E402
-from learned_fusion import l2, ranks_of  # noqa: E402
+from learned_fusion import cosine_per_model, l2, ranks_of  # noqa: E402
 from learned_layers import layer_scores  # noqa: E402
 from learned_view_cues import in_raw4, per_model, rates, refit, replay_parser  # noqa: E402
 
@@ -105,9 +105,7 @@ def dump_variants(store: str, dumps: list[Path]) -> None:
         V = block_tokens(views, net, size, bf16)
         print(f"{size} px: {len(views)} views in {time.perf_counter() - t0:.1f} s", flush=True)
         for d in dumps:
-            recs = json.loads((d / "queries.json").read_text())
-            rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
-            R = block_tokens(rois, net, size, bf16)
+            R = block_tokens(dump_rois(d), net, size, bf16)
             np.savez(
                 d / f"block11_{size}.npz",
                 view_mesh=np.array([k[0] for k in keys]),
@@ -139,8 +137,7 @@ def dump_extra(store: str, dumps: list[Path]) -> None:
     _, views = view_images(store, meshes)
     views_flip = cls(mirrored(views))
     for d in dumps:
-        recs = json.loads((d / "queries.json").read_text())
-        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
+        rois = dump_rois(d)
         framed = {f"rois_m{m}": cls([with_margin(im, m / 100, tuple(GRAY)) for im in rois]) for m in MARGINS}
         np.savez(d / "block11_224_extra.npz", views_flip=views_flip, rois_flip=cls(mirrored(rois)), **framed)
 
@@ -161,7 +158,7 @@ def variant_scores(d: Path, size: int, key: str, n: int) -> np.ndarray:
     parts = key.split("+")
     v = np.concatenate([l2(a[f"views_{k}"]) for k in parts], axis=1)
     r = np.concatenate([l2(a[f"rois_{k}"]) for k in parts], axis=1)
-    return per_model(l2(r) @ l2(v).T, a["view_mesh"], n)
+    return cosine_per_model(r, v, a["view_mesh"], n)
 
 
 def main() -> int:

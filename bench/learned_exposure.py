@@ -35,8 +35,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
-from learned_features import view_images  # noqa: E402
-from learned_fusion import bootstrap, ranks_of  # noqa: E402
+from learned_features import dump_rois, view_images  # noqa: E402
+from learned_fusion import bootstrap, cosine_per_model, ranks_of  # noqa: E402
 from learned_layers import layer_scores  # noqa: E402
 from learned_view_cues import in_raw4, rates, refit, replay_parser  # noqa: E402
 
@@ -80,9 +80,7 @@ def dump_exposure(store: str, dumps: list[Path], targets: list[float]) -> None:
         V = cls_tokens([normalise_exposure(v, t, fill) for v in views], net, bf16)
         print(f"exposure {t:g}: {len(views)} views in {time.perf_counter() - t0:.1f} s", flush=True)
         for d in dumps:
-            recs = json.loads((d / "queries.json").read_text())
-            rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
-            R = cls_tokens([normalise_exposure(im, t, fill) for im in rois], net, bf16)
+            R = cls_tokens([normalise_exposure(im, t, fill) for im in dump_rois(d)], net, bf16)
             np.savez(d / f"exposure_{t:g}.npz", views=V, rois=R, view_mesh=np.array([k[0] for k in keys]))
 
 
@@ -101,7 +99,7 @@ def luminance_stats(store: str, dumps: list[Path]) -> None:
     for d in dumps:
         recs = json.loads((d / "queries.json").read_text())
         for kind in sorted({r["kind"] for r in recs}):
-            rois = (Image.open(d / f"roi_{kind}" / f"{r['query_id']}.png") for r in recs if r["kind"] == kind)
+            rois = dump_rois(d, [r for r in recs if r["kind"] == kind])
             print(f"median foreground luminance: {d.name} ROIs ({kind}) {med(rois)}")
 
 
@@ -135,9 +133,7 @@ def dump_descriptor(store: str, dumps: list[Path], target: float) -> None:
     keys, views = view_images(store, meshes)
     V = enc.encode_image([normalise_exposure(v, target, fill) for v in views])
     for d in todo:
-        recs = json.loads((d / "queries.json").read_text())
-        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
-        R = enc.encode_image([normalise_exposure(im, target, fill) for im in rois])
+        R = enc.encode_image([normalise_exposure(im, target, fill) for im in dump_rois(d)])
         np.savez(d / f"descriptor_{target:g}.npz", views=V, rois=R, view_mesh=np.array([k[0] for k in keys]))
 
 
@@ -196,7 +192,7 @@ def descriptor_replay(args, dumps: list[Path], patch) -> None:
     def with_descriptor(D, d):
         D = patch(D, d)
         a = np.load(d / f"descriptor_{t:g}.npz")
-        D["descE"] = ltr.best_per_model(a["rois"] @ a["views"].T, a["view_mesh"], D["desc"].shape[1])
+        D["descE"] = cosine_per_model(a["rois"], a["views"], a["view_mesh"], D["desc"].shape[1])
         print(f"descriptor alone, {d.name}: {rates(ranks_of(D['desc'], D['exp']), D['kind'])}; normalised: "
               f"{rates(ranks_of(D['descE'], D['exp']), D['kind'])}")
         return D

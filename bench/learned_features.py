@@ -83,6 +83,16 @@ def query_records(args, out: Path) -> list[dict]:
     return records
 
 
+def dump_rois(d: Path, records: list[dict] | None = None):
+    """The ROI images a dump holds (``roi_<kind>/<query_id>.png``, as RGB), in the order of ``records``
+    (default: every record of the dump's ``queries.json``)."""
+    from PIL import Image
+
+    if records is None:
+        records = json.loads((d / "queries.json").read_text())
+    return [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in records]
+
+
 def view_images(store_path: str, meshes: list[str]):
     import pyarrow.compute as pc
     from PIL import Image
@@ -135,7 +145,7 @@ def main() -> int:
     records = query_records(args, out)
     meshes = json.loads((out / "meshes.json").read_text())
     keys, views = view_images(args.store, meshes)
-    rois = [Image.open(out / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in records]
+    rois = dump_rois(out, records)
     for size in [int(s) for s in args.sizes.split(",")]:
         enc = LearnedViewEncoder(size=size)
         for flip in [int(f) for f in args.flips.split(",")]:

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from learned_features import view_images  # noqa: E402
+from learned_features import dump_rois, view_images  # noqa: E402
 from learned_fusion import (  # noqa: E402
     INLIER_CAP,
     INLIER_FLOOR,
@@ -85,7 +85,7 @@ def main() -> int:
     if not cache.exists():
         enc = LearnedViewEncoder(size=args.size)
         keys, views = view_images(args.store, meshes)
-        rois = [Image.open(feats / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
+        rois = dump_rois(feats, recs)
         pv, pr = pooled_features(views, enc, args.size), pooled_features(rois, enc, args.size)
         np.savez(
             cache,

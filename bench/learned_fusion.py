@@ -55,6 +55,11 @@ def learned_scores(
     return best_per_model(rois @ views.T, a["view_mesh"], n_meshes)
 
 
+def cosine_per_model(rois: np.ndarray, views: np.ndarray, view_mesh: np.ndarray, n_meshes: int) -> np.ndarray:
+    """(queries, meshes): each mesh's best view by the cosine of the ROI and view feature rows."""
+    return best_per_model(l2(rois) @ l2(views).T, view_mesh, n_meshes)
+
+
 def best_per_model(s: np.ndarray, view_mesh: np.ndarray, n_meshes: int) -> np.ndarray:
     """(queries, meshes) from (queries, views) scores: each mesh's best view (``view_mesh``: each view's
     mesh index; every mesh must have a view)."""

@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
-from learned_features import view_images  # noqa: E402
+from learned_features import dump_rois, view_images  # noqa: E402
 from learned_fusion import ranks_of  # noqa: E402
 from learned_view_cues import in_raw4, rates, refit, replay_parser  # noqa: E402
 
@@ -73,8 +73,7 @@ def dump_layers(store: str, dumps: list[Path]) -> None:
     V = block_cls(views, net, bf16)
     print(f"{len(views)} views, {V.shape[0]} blocks, in {time.perf_counter() - t0:.1f} s", flush=True)
     for d in todo:
-        recs = json.loads((d / "queries.json").read_text())
-        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
+        rois = dump_rois(d)
         np.savez(
             d / CACHE, views=V, rois=block_cls(rois, net, bf16), view_mesh=np.array([k[0] for k in keys])
         )

@@ -29,11 +29,10 @@ from learned_fusion import (  # noqa: E402
     INLIER_CAP,
     INLIER_FLOOR,
     VERIFY_TOP,
-    best_per_model,
     bootstrap,
+    cosine_per_model,
     dumped_cues,
     fuse,
-    l2,
     learned_scores,
     ranks_of,
 )
@@ -71,7 +70,7 @@ def exposure_scores(d: Path, target: float, n: int) -> np.ndarray | None:
     if not path.exists():
         return None
     a = np.load(path)
-    return best_per_model(l2(a["rois"]) @ l2(a["views"]).T, a["view_mesh"], n)
+    return cosine_per_model(a["rois"], a["views"], a["view_mesh"], n)
 
 
 def block_scores(d: Path, block: int, n: int) -> np.ndarray | None:
@@ -81,7 +80,7 @@ def block_scores(d: Path, block: int, n: int) -> np.ndarray | None:
     if not path.exists():
         return None
     a = np.load(path)
-    return best_per_model(l2(a["rois"][block - 1]) @ l2(a["views"][block - 1]).T, a["view_mesh"], n)
+    return cosine_per_model(a["rois"][block - 1], a["views"][block - 1], a["view_mesh"], n)
 
 
 def load(d: Path):

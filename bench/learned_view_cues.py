@@ -38,7 +38,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import learned_ltr as ltr  # noqa: E402
-from learned_features import view_images  # noqa: E402
+from learned_features import dump_rois, view_images  # noqa: E402
 from learned_fg_pooling import foreground_share  # noqa: E402
 from learned_fusion import best_per_model as per_model  # noqa: E402
 from learned_fusion import l2, ranks_of  # noqa: E402
@@ -93,8 +93,7 @@ def chamfer(store: str, dumps: list[Path], enc) -> None:
         if (d / "chamfer_224.npz").exists():
             continue
         recs = json.loads((d / "queries.json").read_text())
-        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in recs]
-        R, ro = fg_patches(rois, enc)
+        R, ro = fg_patches(dump_rois(d, recs), enc)
         out = {k: [] for k in ("q2v", "v2q", "sym")}
         for i in range(len(recs)):
             S = R[ro[i] : ro[i + 1]].astype(np.float32) @ V.T
@@ -154,8 +153,7 @@ def silhouettes(store: str, dumps: list[Path]) -> None:
     keys, views = view_images(store, meshes)
     VS, vm = np.stack([silhouette(v) for v in views]), np.array([m for m, _ in keys])
     for d in dumps:
-        recs = json.loads((d / "queries.json").read_text())
-        RS = np.stack([silhouette(Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png")) for r in recs])
+        RS = np.stack([silhouette(im) for im in dump_rois(d)])
         inter = RS @ VS.T
         iou = inter / np.maximum(RS.sum(1)[:, None] + VS.sum(1)[None] - inter, 1.0)
         np.save(d / "silhouette.npy", per_model(iou, vm, len(meshes)))
@@ -188,7 +186,7 @@ def joint(store: str, dumps: list[Path]) -> None:
     for d in dumps:
         D = ltr.load(d)
         a = np.load(d / "feat_224_0.npz")
-        rois = [Image.open(d / f"roi_{r['kind']}" / f"{r['query_id']}.png").convert("RGB") for r in D["recs"]]
+        rois = dump_rois(d, D["recs"])
         sd = l2(np.asarray(enc.encode_image(rois), np.float32)) @ DV.T
         sl = l2(a["rois_cls"]) @ l2(a["views_cls"]).T
         both = per_model(wl * sl + wd * sd, dvm, len(meshes))

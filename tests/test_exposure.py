@@ -17,10 +17,14 @@ def object_on_gray(colour, size=(40, 30), box=(8, 6, 30, 24)) -> Image.Image:
     return Image.fromarray(a)
 
 
+def plain_foreground(a: np.ndarray, fill=GRAY) -> np.ndarray:
+    """The definition in plain float NumPy: R + G + B off ``fill`` by more than the tolerance."""
+    return np.abs(a - np.asarray(fill, np.float32)).sum(-1) > 6
+
+
 def foreground_median(im: Image.Image) -> float:
     a = np.asarray(im).astype(np.float32)
-    fg = np.abs(a - np.array(GRAY, np.float32)).sum(-1) > 6
-    return float(np.median(a[fg] @ LUMA))
+    return float(np.median(a[plain_foreground(a)] @ LUMA))
 
 
 def test_foreground_lands_on_the_target_and_the_background_stays():
@@ -62,9 +66,9 @@ def test_clipped_and_nearly_empty_images():
 
 
 def plain_reference(image: Image.Image, target: float, fill) -> np.ndarray:
-    """The definition in plain float NumPy: foreground = R + G + B off ``fill`` by more than the tolerance."""
+    """The definition in plain float NumPy (:func:`plain_foreground`), scaled without OpenCV."""
     a = np.asarray(image.convert("RGB")).astype(np.float32)
-    fg = np.abs(a - np.asarray(fill, np.float32)).sum(-1) > 6
+    fg = plain_foreground(a, fill)
     if fg.sum() < MIN_FOREGROUND:
         return np.asarray(image)
     med = max(float(np.median(a[fg] @ LUMA)), 1.0)

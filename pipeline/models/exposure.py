@@ -9,8 +9,8 @@ renderer's lights did. Where the image holds almost no foreground it is returned
 
 Hand-written on OpenCV's array operations because it is a scale on a mask the renderer and the ROI step
 already define (the background colour); OpenCV and scikit-image offer histogram matching and gamma, which
-either need a reference image per object or change the tone curve rather than the exposure. About 3 ms for
-a 512 px view (10 ms in plain NumPy).
+either need a reference image per object or change the tone curve rather than the exposure. About 4 ms for
+a 512 px view (10 ms in plain NumPy; docs/performance.md, "Exposure").
 """
 
 from __future__ import annotations

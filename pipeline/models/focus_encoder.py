@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from pipeline.models.exposure import normalise_exposure
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import ModelLoadError
 from pipeline.models.traced import hidden_states, traced_backbone
@@ -239,6 +238,8 @@ class LearnedViewEncoder:
         if not images:
             return np.zeros((0, self.dim), np.float32)
         if self.exposure:
+            from pipeline.models.exposure import normalise_exposure  # OpenCV: imported when used
+
             images = [normalise_exposure(im, self.exposure, self.fill) for im in images]
         emb = l2_normalise(pool_tokens(self.tokens(images), self.pooling))
         if self.flip:
