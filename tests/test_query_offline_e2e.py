@@ -107,6 +107,24 @@ def test_local_feature_verification(ycb_store, queries, offline_models):
         assert best.inliers >= 15 and best.score == pytest.approx(base, abs=1e-5)  # no bonus at weight 0
 
 
+def test_a_query_background_other_than_the_renders_is_refused(ycb_store, offline_models):
+    """The ROI is pasted on the query setting's background; the encoders read the views' background as
+    "not the object", so another colour is refused in one line instead of ranking a whole-ROI object."""
+    from pipeline.query import QueryError
+
+    store, _ = ycb_store
+    with pytest.raises(QueryError) as exc:
+        Retriever.open(
+            store, profile="offline", models=offline_models, settings_changes={"background": (0, 0, 0)}
+        )
+    msg = str(exc.value)
+    assert "\n" not in msg and "(0, 0, 0)" in msg and "(205, 205, 205)" in msg and str(store) in msg
+    with Retriever.open(
+        store, profile="offline", models=offline_models, settings_changes={"background": [205, 205, 205]}
+    ) as r:  # the same colour spelled as a list is the same background
+        assert r.n_meshes == len(YCB_NAMES)
+
+
 def test_cli_end_to_end_with_explain_and_export(
     ycb_store, queries, offline_models, monkeypatch, capsys, tmp_path
 ):

@@ -29,6 +29,7 @@ def ranking_context(store, profile, tables, settings, *, device, threads) -> Ran
     mesh_ids = tables.meshes.column("mesh_id").to_pylist()
     cfg = VerifyConfig(top=settings.verify_top, weight=settings.verify_weight)
     render = tables.onboarding.render_config()
+    check_background(settings, render, store.root)
     # the hand-off reads the tables directly, not through the Retriever's recovering view_poses (a query
     # already holds the recovery gate)
     handoff = HandOff(tables.mesh, tables.view_poses, render.up if render else "auto", mesh_ids)
@@ -45,6 +46,21 @@ def ranking_context(store, profile, tables, settings, *, device, threads) -> Ran
         profile, settings, tables.onboarding, fused=learned is not None
     )
     return ctx
+
+
+def check_background(settings, render, store_root) -> None:
+    """Refuse a query ``background`` other than the store's render background: the ROI is pasted on it,
+    and the view encoders (the descriptor, the learned encoder's exposure step) take every pixel off the
+    views' background for the object, so another colour would count the whole ROI as object. A store whose
+    run did not record its render config is not checked."""
+    if render is None:
+        return
+    want, got = tuple(int(c) for c in render.background), tuple(int(c) for c in settings.background)
+    if want != got:
+        raise QueryError(
+            f"query background {got} differs from the background {want} that store {store_root} was rendered "
+            f"on: leave the query setting background at {want}"
+        )
 
 
 def calibration_for(profile, settings, onboarding, *, fused: bool):
