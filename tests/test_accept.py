@@ -317,6 +317,10 @@ def test_forward_selection_keeps_the_informative_feature_and_drops_noise():
     assert rejected_at_target(exs, conf, 0.9) == 1.0
     picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True)
     assert sum(picked.values()) == len({e.group for e in exs})
+    # a gain no second feature can reach: the selection keeps the best single one, in every fold too
+    assert select_features(exs, ("score", "margin", "text_score"), 0.9, min_gain=1.0) == chosen[:1]
+    picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True, min_gain=1.0)
+    assert all(len(k.split(",")) == 1 for k in picked)
 
 
 def test_rates_curve_and_calibration_error():
