@@ -1,8 +1,8 @@
-"""Three more variants around the shipped learned cue (block 11's CLS on exposure-normalised images),
+"""Four more variants around the shipped learned cue (block 11's CLS on exposure-normalised images),
 replayed on feature dumps.
 
     python bench/learned_more_variants.py --store STORE --train SYNTH_DUMP [--train DIR ...] \
-        --test PHOTO_DUMP --confirm FRESH_SYNTH_DUMP [--variants rotations,white_balance,rings]
+        --test PHOTO_DUMP --confirm FRESH_SYNTH_DUMP [--variants rotations,white_balance,erosion,rings]
 
 The dumps are ``bench/learned_features.py``'s with ``bench/learned_exposure.py``'s ``exposure_110.npz`` (the
 shipped cue, ``E110``); STORE is the store the dumps were made from (its meshes are re-rendered for
@@ -15,6 +15,9 @@ shipped cue, ``E110``); STORE is the store the dumps were made from (its meshes 
 * ``white_balance``: the ROI's foreground multiplied by the photo's grey-world (p = 1) or shades-of-grey
   (p = 6) channel gains, estimated on the whole photo, at strength 0.5 or 1, before the exposure step; the
   harder synthetic sets carry a random white balance (``pipeline.evaluate.degrade``).
+* ``erosion``: the ROI's foreground (off the render gray) eroded by 1, 2 or 3 px, or by 1 % or 2 % of the
+  ROI's long side, before the exposure step (the harder synthetic sets grow their query masks by 0-4 px,
+  ``pipeline.evaluate.degrade``; the photos' masks are the dataset's labels).
 * ``rings``: one more elevation ring of 4 views (30, -45 or 75 degrees; rendered and embedded here, cached
   as ``rings.npz`` beside the first training dump), the model's score the max over its 12 stored views and
   the ring's. Also refitted into the shipped cue set as ``bench/learned_ltr.py`` fits (synthetic dumps
@@ -147,6 +150,37 @@ def white_balance(dumps: list[Path], net, bf16: bool) -> None:
             print(f"white balance, {d.name}, {key}: {rates(ranks_of(score, exp), kind)}", flush=True)
 
 
+def eroded(im: Image.Image, px: int) -> Image.Image:
+    """``im`` with its foreground (off the render gray) eroded by ``px`` pixels (unchanged when that would
+    leave less than 30 % of it)."""
+    import cv2
+
+    from pipeline.query.settings import GRAY
+
+    a = np.asarray(im.convert("RGB")).copy()
+    fg = (np.abs(a.astype(np.int16) - np.array(GRAY, np.int16)).sum(2) > 6).astype(np.uint8)
+    kept = cv2.erode(fg, np.ones((2 * px + 1, 2 * px + 1), np.uint8))
+    if kept.sum() < 0.3 * fg.sum():
+        return im
+    a[(fg > 0) & (kept == 0)] = GRAY
+    return Image.fromarray(a)
+
+
+def erosion(dumps: list[Path], net, bf16: bool) -> None:
+    for d in dumps:
+        recs, exp, kind, E = loaded(d)
+        rois = dump_rois(d, recs)
+        n = int(E["view_mesh"].max()) + 1
+        plain = cosine_per_model(E["rois"], E["views"], E["view_mesh"], n)
+        print(f"erosion, {d.name}, as shipped: {rates(ranks_of(plain, exp), kind)}")
+        for px, share in ((1, 0.0), (2, 0.0), (3, 0.0), (0, 0.01), (0, 0.02)):
+            name = f"{px} px" if px else f"{100 * share:g} % of the side"
+            sizes = [px or max(1, round(share * max(im.size))) for im in rois]
+            x = embed_normalised([eroded(im, k) for im, k in zip(rois, sizes, strict=True)], net, bf16)
+            score = cosine_per_model(x, E["views"], E["view_mesh"], n)
+            print(f"erosion, {d.name}, {name}: {rates(ranks_of(score, exp), kind)}", flush=True)
+
+
 def render_rings(store: str, meshes: list[str], out: Path) -> None:
     """Renders every model on each ring of :data:`RINGS` (4 views) and writes their shipped-cue vectors."""
     from pipeline.mesh.load import load_mesh
@@ -204,16 +238,18 @@ def rings(args, dumps: list[Path]) -> None:
 def main() -> int:
     p = replay_parser(__doc__)
     p.add_argument("--confirm", required=True, help="a fresh synthetic dump (never fitted or chosen on)")
-    p.add_argument("--variants", default="rotations,white_balance,rings")
+    p.add_argument("--variants", default="rotations,white_balance,erosion,rings")
     args = p.parse_args()
     dumps = [Path(d) for d in (*args.train, args.test, args.confirm)]
     variants = args.variants.split(",")
-    if {"rotations", "white_balance"} & set(variants):
+    if {"rotations", "white_balance", "erosion"} & set(variants):
         net, bf16 = shipped_net()
         if "rotations" in variants:
             rotations(dumps, net, bf16)
         if "white_balance" in variants:
             white_balance(dumps, net, bf16)
+        if "erosion" in variants:
+            erosion(dumps, net, bf16)
     if "rings" in variants:
         rings(args, dumps)
     return 0
