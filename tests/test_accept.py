@@ -138,7 +138,10 @@ def test_z_score_features_need_enough_models_to_judge():
     cohort_small = judge(
         cal, feats, "two-stage+verify", samples={"candidates": 50, "cohort": MIN_Z_SAMPLE - 1}
     )
-    assert cohort_small.accepted is None and f"learned_z over {MIN_Z_SAMPLE - 1} library models" in cohort_small.note
+    assert (
+        cohort_small.accepted is None
+        and f"learned_z over {MIN_Z_SAMPLE - 1} library models" in cohort_small.note
+    )
     assert "score_z" not in cohort_small.note
     enough = judge(
         cal, feats, "two-stage+verify", samples={"candidates": MIN_Z_SAMPLE, "cohort": MIN_Z_SAMPLE}
@@ -321,6 +324,34 @@ def test_forward_selection_keeps_the_informative_feature_and_drops_noise():
     assert select_features(exs, ("score", "margin", "text_score"), 0.9, min_gain=1.0) == chosen[:1]
     picked = cross_validate(exs, ("score", "margin", "text_score"), 0.9, select=True, min_gain=1.0)
     assert all(len(k.split(",")) == 1 for k in picked)
+
+
+def test_selection_votes_over_fold_assignments(monkeypatch):
+    """The selection runs once per fold assignment (each a different relabelling of the groups) and keeps
+    the set picked most often; a tie goes to the smaller set, then to the one found first."""
+    import pipeline.evaluate.openset as openset
+
+    exs = examples(n_groups=6)
+    seen: list[tuple] = []
+
+    def scripted(answers):
+        def greedy(examples, candidates, target, groups, c, folds, min_gain):
+            seen.append(tuple(groups.tolist()))
+            return answers[len(seen) - 1]
+
+        return greedy
+
+    a, b, c = ("score",), ("score", "margin"), ("margin",)
+    monkeypatch.setattr(openset, "greedy_selection", scripted([b, a, b, a, b]))
+    assert select_features(exs, ("score", "margin"), 0.9, repeats=5) == b
+    assert len(set(seen)) == 5  # five different fold assignments
+    assert sorted(set(seen[0])) == list(range(6))  # every group relabelled, none merged
+    seen.clear()
+    monkeypatch.setattr(openset, "greedy_selection", scripted([b, a, c, b, a]))
+    assert select_features(exs, ("score", "margin"), 0.9, repeats=5) == a  # b and a tie: the smaller
+    seen.clear()
+    monkeypatch.setattr(openset, "greedy_selection", scripted([c, a]))
+    assert select_features(exs, ("score", "margin"), 0.9, repeats=2) == c  # same size: the first found
 
 
 def test_rates_curve_and_calibration_error():
