@@ -6,7 +6,8 @@
 ``--examples``: the answers the shipped calibration was fitted on; ``--fresh``: the answers of a query set
 used for nothing else (the openset command run on it alone), for confirmation. Both must come from STORE
 (the full library). Three variants of the default ranking's acceptance model; the first two use the
-selection as it was until section 6.7 (one fold assignment, ``repeats=1``):
+selection as it was until section 6.7 (one fold assignment: GroupKFold on the objects as labelled,
+:func:`as_before`):
 
 * **Model hubness.** Per model, from the store's learned view vectors: its best-view cosine with every
   other model, the mean of the k best (``hub1``, ``hub3``, ``hub10``), and ``vhub`` (each view's mean
@@ -18,9 +19,10 @@ selection as it was until section 6.7 (one fold assignment, ``repeats=1``):
 * **Selection threshold.** ``min_gain`` (the inner cross-validated rejection a feature must add) at 0.005
   (shipped), 0.02 and 0.04: leave one object out as above, then fitted on every answer and scored on the
   fresh answers, at the operating point and at the threshold that accepts 95 % of their correct answers.
-* **Selection votes** (section 6.7, shipped with 5): the feature set picked most often over ``repeats`` = 1,
-  5 or 9 fold assignments (``select_features(repeats=...)``), leave one object out and on the fresh set,
-  with the absent answers rejected at one global threshold accepting 95, 97 and 98 % of the correct ones.
+* **Selection votes** (section 6.7, shipped with 5): the selection as before, and the feature set picked
+  most often over ``repeats`` = 1, 5 or 9 seeded fold assignments (``select_features(repeats=...)``), leave
+  one object out and on the fresh set, with the absent answers rejected at one global threshold accepting
+  95, 97 and 98 % of the correct ones.
 
 Printed: absent rejected / correct accepted, pooled and on the photos (``ycb_photos``) per ROI kind.
 Results: docs/results.md, sections 6.6 and 6.7.
@@ -38,17 +40,41 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import pipeline.evaluate.openset as openset  # noqa: E402
 import pipeline.query.accept as accept  # noqa: E402
 from pipeline.evaluate.openset import (  # noqa: E402
     Example,
     cross_validate,
     fit,
+    greedy_selection,
     rates_at,
     select_features,
     usable_features,
 )
 
 HUB = ("l_hub1", "l_hub3", "l_hub10", "l_vhub")
+
+
+def as_before(examples, candidates, target, c=1.0, folds=5, min_gain=openset.MIN_GAIN, repeats=None):
+    """The selection until section 6.7: one greedy pass on the objects' own fold assignment."""
+    groups = np.array([e.group for e in examples])
+    return greedy_selection(examples, candidates, target, groups, c, folds, min_gain)
+
+
+def selecting_as_before(fn):
+    """Runs ``fn`` with :func:`as_before` as the selection ``cross_validate`` calls."""
+
+    def run(*args):
+        saved = openset.select_features
+        openset.select_features = as_before
+        try:
+            return fn(*args)
+        finally:
+            openset.select_features = saved
+
+    return run
+
+
 TARGET = 0.97  # the openset command's default operating point
 
 
@@ -121,9 +147,9 @@ def hubness(args) -> None:
     accept.FEATURES = (*accept.FEATURES, *HUB)  # the acceptance model checks its features' names
     exs = load(args.examples, args.variant, model_hubness(args.store))
     base = tuple(f for f in usable_features(exs) if f not in HUB)
-    report("selection, shipped candidates", exs, cross_validate(exs, base, TARGET, select=True, repeats=1))
-    report("selection, + hubness", exs, cross_validate(exs, (*base, *HUB), TARGET, select=True, repeats=1))
-    shipped = select_features(exs, base, TARGET, repeats=1)  # the set 6.5 shipped
+    report("selection, shipped candidates", exs, cross_validate(exs, base, TARGET, select=True))
+    report("selection, + hubness", exs, cross_validate(exs, (*base, *HUB), TARGET, select=True))
+    shipped = as_before(exs, base, TARGET)  # the set 6.5 shipped
     cross_validate(exs, shipped, TARGET)
     report(f"the shipped set {','.join(shipped)} in every fold (optimistic)", exs)
     for f in HUB:
@@ -136,9 +162,9 @@ def min_gain(args) -> None:
     fresh = load(args.fresh, args.variant)
     feats = usable_features(exs)
     for gain in (0.005, 0.02, 0.04):
-        picked = cross_validate(exs, feats, TARGET, select=True, min_gain=gain, repeats=1)
+        picked = cross_validate(exs, feats, TARGET, select=True, min_gain=gain)
         report(f"min_gain {gain}, leave one object out", exs, picked)
-        chosen = select_features(exs, feats, TARGET, min_gain=gain, repeats=1)
+        chosen = as_before(exs, feats, TARGET, min_gain=gain)
         model = fit(exs, chosen, TARGET)
         conf = model.predict(np.array([[e.features[f] for f in chosen] for e in fresh]))
         for e, c in zip(fresh, conf, strict=True):
@@ -165,18 +191,22 @@ def votes(args) -> None:
     exs = load(args.examples, args.variant)
     fresh = load(args.fresh, args.variant)
     feats = usable_features(exs)
-    for repeats in (1, 5, 9):
-        picked = cross_validate(exs, feats, TARGET, select=True, repeats=repeats)
-        report(f"repeats {repeats}, leave one object out", exs, picked)
-        print(
-            f"    one threshold on the out-of-fold confidences: {curve(exs, np.array([e.confidence for e in exs]))}"
-        )
-        chosen = select_features(exs, feats, TARGET, repeats=repeats)
+    for repeats in (None, 1, 5, 9):
+        name = "as before" if repeats is None else f"repeats {repeats}"
+        if repeats is None:
+            picked = selecting_as_before(cross_validate)(exs, feats, TARGET, 1.0, True)
+            chosen = as_before(exs, feats, TARGET)
+        else:
+            picked = cross_validate(exs, feats, TARGET, select=True, repeats=repeats)
+            chosen = select_features(exs, feats, TARGET, repeats=repeats)
+        report(f"{name}, leave one object out", exs, picked)
+        oof = np.array([e.confidence for e in exs])
+        print(f"    one threshold on the out-of-fold confidences: {curve(exs, oof)}")
         model = fit(exs, chosen, TARGET)
         conf = model.predict(np.array([[e.features[f] for f in chosen] for e in fresh]))
         for e, c in zip(fresh, conf, strict=True):
             e.confidence, e.accepted = float(c), bool(c >= model.threshold)
-        report(f"repeats {repeats}, {','.join(chosen)} fitted on every answer, on the fresh set", fresh)
+        report(f"{name}, {','.join(chosen)} fitted on every answer, on the fresh set", fresh)
         print(f"    one threshold on the fresh set: {curve(fresh, conf)}", flush=True)
 
 
@@ -187,9 +217,9 @@ def main() -> int:
     p.add_argument("--fresh", required=True, help="a fresh set's answers (examples.jsonl), for confirmation")
     p.add_argument("--variant", default="two-stage+verify")
     args = p.parse_args()
-    min_gain(args)
+    selecting_as_before(min_gain)(args)
     votes(args)
-    hubness(args)
+    selecting_as_before(hubness)(args)
     return 0
 
 
