@@ -58,29 +58,41 @@ def cls_tokens(images: list[Image.Image], net, bf16: bool, batch: int = 16) -> n
     return np.concatenate(out)
 
 
-def dump_exposure(store: str, dumps: list[Path], targets: list[float]) -> None:
-    """Writes ``exposure_<target>.npz`` (``views``, ``rois``, ``view_mesh``) into every dump lacking it."""
+def shipped_net():
+    """(the network cut after the shipped block, whether it runs in bfloat16 as the product's encoder
+    would with precision ``auto``)."""
     import torch
 
-    from pipeline.models.exposure import normalise_exposure
     from pipeline.models.focus_encoder import bf16_pays, first_blocks
     from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+
+    return first_blocks(load_backbone(focus_backbone_dir()), ltr.shipped_block()), bf16_pays(
+        torch.device("cpu")
+    )
+
+
+def embed_normalised(images: list[Image.Image], net, bf16: bool, target: float) -> np.ndarray:
+    """CLS vectors of ``images`` with their foreground normalised to ``target`` first (the exposure step)."""
+    from pipeline.models.exposure import normalise_exposure
     from pipeline.query.settings import GRAY
 
+    return cls_tokens([normalise_exposure(im, target, tuple(GRAY)) for im in images], net, bf16)
+
+
+def dump_exposure(store: str, dumps: list[Path], targets: list[float]) -> None:
+    """Writes ``exposure_<target>.npz`` (``views``, ``rois``, ``view_mesh``) into every dump lacking it."""
     todo = [t for t in targets if not all((d / f"exposure_{t:g}.npz").exists() for d in dumps)]
     if not todo:
         return
-    net = first_blocks(load_backbone(focus_backbone_dir()), ltr.shipped_block())
-    bf16 = bf16_pays(torch.device("cpu"))  # as the product's encoder (precision auto)
+    net, bf16 = shipped_net()
     meshes = json.loads((dumps[0] / "meshes.json").read_text())
     keys, views = view_images(store, meshes)
-    fill = tuple(GRAY)
     for t in todo:
         t0 = time.perf_counter()
-        V = cls_tokens([normalise_exposure(v, t, fill) for v in views], net, bf16)
+        V = embed_normalised(views, net, bf16, t)
         print(f"exposure {t:g}: {len(views)} views in {time.perf_counter() - t0:.1f} s", flush=True)
         for d in dumps:
-            R = cls_tokens([normalise_exposure(im, t, fill) for im in dump_rois(d)], net, bf16)
+            R = embed_normalised(dump_rois(d), net, bf16, t)
             np.savez(d / f"exposure_{t:g}.npz", views=V, rois=R, view_mesh=np.array([k[0] for k in keys]))
 
 
@@ -147,7 +159,9 @@ def confirm(trains: list[str], fresh: str, featsets: dict, patch, base_name: str
     for name, fn in featsets.items():
         w, wv = ltr.fit_all(T, fn)
         on_fresh = ranks_of(ltr.scores(np.stack(fn(F)), w, ltr.bonus(F), wv), F["exp"])
-        print(f"{name} on {Path(fresh).name} (fitted on every training dump): {ltr.rates(on_fresh, F['label'])}")
+        print(
+            f"{name} on {Path(fresh).name} (fitted on every training dump): {ltr.rates(on_fresh, F['label'])}"
+        )
         ranks[name] = np.concatenate([*ltr.cv_ranks(T, fn), on_fresh])
     base = ranks[base_name]
     for name, r in ranks.items():
@@ -193,8 +207,10 @@ def descriptor_replay(args, dumps: list[Path], patch) -> None:
         D = patch(D, d)
         a = np.load(d / f"descriptor_{t:g}.npz")
         D["descE"] = cosine_per_model(a["rois"], a["views"], a["view_mesh"], D["desc"].shape[1])
-        print(f"descriptor alone, {d.name}: {rates(ranks_of(D['desc'], D['exp']), D['kind'])}; normalised: "
-              f"{rates(ranks_of(D['descE'], D['exp']), D['kind'])}")
+        print(
+            f"descriptor alone, {d.name}: {rates(ranks_of(D['desc'], D['exp']), D['kind'])}; normalised: "
+            f"{rates(ranks_of(D['descE'], D['exp']), D['kind'])}"
+        )
         return D
 
     learned = f"E{t:g}"

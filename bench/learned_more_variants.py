@@ -41,8 +41,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
+import learned_exposure as exposure_bench  # noqa: E402
 import learned_ltr as ltr  # noqa: E402
-from learned_exposure import cls_tokens, confirm  # noqa: E402
+from learned_exposure import confirm, shipped_net  # noqa: E402
 from learned_features import dump_rois  # noqa: E402
 from learned_fusion import cosine_per_model, ranks_of  # noqa: E402
 from learned_view_cues import in_raw4, rates, refit, replay_parser  # noqa: E402
@@ -51,23 +52,9 @@ TARGET = 110  # the shipped exposure target
 RINGS = {"e30": 30.0, "em45": -45.0, "e75": 75.0}
 
 
-def shipped_net():
-    import torch
-
-    from pipeline.models.focus_encoder import bf16_pays, first_blocks
-    from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
-
-    return first_blocks(load_backbone(focus_backbone_dir()), ltr.shipped_block()), bf16_pays(
-        torch.device("cpu")
-    )
-
-
 def embed_normalised(images: list[Image.Image], net, bf16: bool) -> np.ndarray:
     """The shipped cue's vectors of ``images``: exposure step at :data:`TARGET`, then the network."""
-    from pipeline.models.exposure import normalise_exposure
-    from pipeline.query.settings import GRAY
-
-    return cls_tokens([normalise_exposure(im, TARGET, tuple(GRAY)) for im in images], net, bf16)
+    return exposure_bench.embed_normalised(images, net, bf16, TARGET)
 
 
 def loaded(d: Path):
@@ -117,10 +104,12 @@ def channel_gains(path: str, p: float) -> np.ndarray:
 
 def balanced(im: Image.Image, gains: np.ndarray) -> Image.Image:
     """``im`` with its foreground (off the render gray) multiplied by ``gains``, clipped to 8 bits."""
+    from pipeline.models.exposure import foreground_mask
     from pipeline.query.settings import GRAY
 
-    a = np.asarray(im.convert("RGB"), np.float32)
-    fg = np.abs(a - np.array(GRAY, np.float32)).sum(2) > 6
+    rgb = np.ascontiguousarray(np.asarray(im.convert("RGB")))
+    fg = foreground_mask(rgb, tuple(GRAY))
+    a = rgb.astype(np.float32)
     a[fg] = np.clip(a[fg] * gains, 0, 255)
     return Image.fromarray(a.round().astype(np.uint8))
 
@@ -155,10 +144,11 @@ def eroded(im: Image.Image, px: int) -> Image.Image:
     leave less than 30 % of it)."""
     import cv2
 
+    from pipeline.models.exposure import foreground_mask
     from pipeline.query.settings import GRAY
 
-    a = np.asarray(im.convert("RGB")).copy()
-    fg = (np.abs(a.astype(np.int16) - np.array(GRAY, np.int16)).sum(2) > 6).astype(np.uint8)
+    a = np.ascontiguousarray(np.asarray(im.convert("RGB"))).copy()
+    fg = foreground_mask(a, tuple(GRAY)).astype(np.uint8)
     kept = cv2.erode(fg, np.ones((2 * px + 1, 2 * px + 1), np.uint8))
     if kept.sum() < 0.3 * fg.sum():
         return im

@@ -164,17 +164,7 @@ def min_gain(args) -> None:
     for gain in (0.005, 0.02, 0.04):
         picked = cross_validate(exs, feats, TARGET, select=True, min_gain=gain)
         report(f"min_gain {gain}, leave one object out", exs, picked)
-        chosen = as_before(exs, feats, TARGET, min_gain=gain)
-        model = fit(exs, chosen, TARGET)
-        conf = model.predict(np.array([[e.features[f] for f in chosen] for e in fresh]))
-        for e, c in zip(fresh, conf, strict=True):
-            e.confidence, e.accepted = float(c), bool(c >= model.threshold)
-        report(f"min_gain {gain}, {','.join(chosen)} fitted on every answer, on the fresh set", fresh)
-        right = np.array([e.library == "full" and e.correct for e in fresh])
-        absent = np.array([e.library == "absent" for e in fresh])
-        t95 = np.quantile(conf[right], 0.05)
-        print(f"    at 95 % of the fresh set's correct answers accepted: {100 * np.mean(conf[absent] < t95):.1f}% "
-              "of its absent ones rejected")  # fmt: skip
+        on_fresh(f"min_gain {gain}", exs, as_before(exs, feats, TARGET, min_gain=gain), fresh)
 
 
 def curve(examples: list[Example], conf: np.ndarray) -> str:
@@ -185,6 +175,17 @@ def curve(examples: list[Example], conf: np.ndarray) -> str:
         f"{100 * np.mean(conf[absent] < np.quantile(conf[right], 1 - a)):.1f} % at {100 * a:g} %"
         for a in (0.95, 0.97, 0.98)
     )
+
+
+def on_fresh(name: str, exs: list[Example], chosen: tuple[str, ...], fresh: list[Example]) -> None:
+    """Fits ``chosen`` on every answer of ``exs`` and prints its rates on the fresh answers, at its operating
+    point and at one threshold (:func:`curve`)."""
+    model = fit(exs, chosen, TARGET)
+    conf = model.predict(np.array([[e.features[f] for f in chosen] for e in fresh]))
+    for e, c in zip(fresh, conf, strict=True):
+        e.confidence, e.accepted = float(c), bool(c >= model.threshold)
+    report(f"{name}, {','.join(chosen)} fitted on every answer, on the fresh set", fresh)
+    print(f"    one threshold on the fresh set: {curve(fresh, conf)}", flush=True)
 
 
 def votes(args) -> None:
@@ -202,12 +203,7 @@ def votes(args) -> None:
         report(f"{name}, leave one object out", exs, picked)
         oof = np.array([e.confidence for e in exs])
         print(f"    one threshold on the out-of-fold confidences: {curve(exs, oof)}")
-        model = fit(exs, chosen, TARGET)
-        conf = model.predict(np.array([[e.features[f] for f in chosen] for e in fresh]))
-        for e, c in zip(fresh, conf, strict=True):
-            e.confidence, e.accepted = float(c), bool(c >= model.threshold)
-        report(f"{name}, {','.join(chosen)} fitted on every answer, on the fresh set", fresh)
-        print(f"    one threshold on the fresh set: {curve(fresh, conf)}", flush=True)
+        on_fresh(name, exs, chosen, fresh)
 
 
 def main() -> int:

@@ -28,11 +28,17 @@ MIN_FOREGROUND = 16
 _SUM3 = np.ones((1, 3), np.float32)
 
 
-def _foreground(a: np.ndarray, fill: tuple[int, int, int]) -> tuple[np.ndarray, float] | None:
-    """The foreground mask of RGB array ``a`` and its median luminance; ``None`` with too little of it."""
+def foreground_mask(a: np.ndarray, fill: tuple[int, int, int]) -> np.ndarray:
+    """Boolean HxW mask of the pixels of uint8 RGB array ``a`` whose R + G + B differ from ``fill``'s by more
+    than :data:`FOREGROUND_TOLERANCE` (the object, as the exposure step sees it)."""
     # R + G + B of |pixel - fill|, saturated at 255 by OpenCV: the same test against the small tolerance
     off = cv2.transform(cv2.absdiff(a, np.full_like(a, fill)), _SUM3)
-    fg = off > FOREGROUND_TOLERANCE
+    return off > FOREGROUND_TOLERANCE
+
+
+def _foreground(a: np.ndarray, fill: tuple[int, int, int]) -> tuple[np.ndarray, float] | None:
+    """The foreground mask of RGB array ``a`` and its median luminance; ``None`` with too little of it."""
+    fg = foreground_mask(a, fill)
     if int(np.count_nonzero(fg)) < MIN_FOREGROUND:
         return None
     return fg, float(np.median(a[fg].astype(np.float32) @ LUMA))
