@@ -52,7 +52,8 @@ def load_mesh(
         _check_obj_tail(path)
     try:
         with _pixel_limit(max_texture_pixels):
-            loaded = trimesh.load(path, file_type=fmt, process=False, maintain_order=True)
+            # not maintain_order: OBJ vertices must split where their UVs differ (tests/test_uv_seams.py)
+            loaded = trimesh.load(path, file_type=fmt, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise MeshError(f"cannot parse {fmt.upper()} file: {_parse_reason(exc, fmt)}") from None
     if isinstance(loaded, trimesh.Scene):
@@ -65,7 +66,7 @@ def load_mesh(
     if not geoms:
         raise MeshError("empty mesh: no faces")
     n_faces = int(sum(len(g.faces) for g in geoms))
-    n_vertices = int(sum(len(g.vertices) for g in geoms))
+    n_vertices = int(sum(_positions(g) for g in geoms))
     if fmt == "obj" and declared is not None and n_faces < declared:
         raise MeshError(
             f"truncated or malformed OBJ: {declared:,} face lines but only {n_faces:,} faces parsed"
@@ -216,6 +217,13 @@ def quick_face_count(path: str, fmt: str) -> int | None:
     except (OSError, ValueError, IndexError):
         return None
     return None
+
+
+def _positions(geom) -> int:
+    """Distinct vertex positions of ``geom``: the file's vertex count, although a vertex on a UV seam is
+    loaded once per chart (so ``n_vertices`` means what it meant before the split)."""
+    v = np.ascontiguousarray(geom.vertices, dtype=np.float64)
+    return len(np.unique(v.view(np.dtype((np.void, v.dtype.itemsize * v.shape[1]))).ravel()))
 
 
 def up_rotation(fmt: str, up: str) -> np.ndarray:

@@ -6,8 +6,10 @@ from dataclasses import asdict, dataclass
 
 from pipeline.fingerprint import fingerprint
 
-#: Bump when rendering code changes in a way that changes pixels.
-RENDER_VERSION = "pyrender-5"
+#: Bump when rendering code changes in a way that changes pixels. 6: OBJ vertices are split where their
+#: texture coordinates differ (UV seams); 5 and before gave every seam vertex one chart's coordinates, so
+#: scanned meshes rendered with dark cracks along their seams (docs/results.md, section 9).
+RENDER_VERSION = "pyrender-6"
 GRAY = (205, 205, 205)
 #: The paper's elevation rings (K=8: 4 views at -15 and 4 at +15 deg). The offline profile adds a +45 deg
 #: ring (:data:`pipeline.profiles.PROFILES`): see docs/query.md, "Elevation rings".

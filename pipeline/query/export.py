@@ -302,7 +302,7 @@ def _load(src: Path, fmt: str):
     import trimesh
 
     try:
-        return trimesh.load(str(src), file_type=fmt, process=False, maintain_order=True)
+        return trimesh.load(str(src), file_type=fmt, process=False)  # split at UV seams (tests/test_uv_seams.py)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise QueryError(f"cannot load {src} for export: {type(exc).__name__}: {exc}") from None
 
