@@ -6,7 +6,7 @@ Embeds ``--views`` stored views of ``STORE`` (batch 32, after a warm-up) and one
 precision (float32, bfloat16) at each size; prints ms per view, ms for one ROI, the opening time (the cached
 TorchScript copy once traced) and the smallest cosine between a view's bfloat16 and float32 embedding, for
 each depth (``--layers``: the block pooled, 12 = the whole network; the offline profile pools block 11).
-bfloat16 is only fast on CPUs with AMX tiles (``bf16_pays``); elsewhere it is emulated.
+bfloat16 is only fast on CPUs with AMX tiles or AVX512-BF16 (``bf16_pays``); elsewhere it is emulated.
 """
 
 from __future__ import annotations

@@ -189,6 +189,39 @@ def test_bf16_embeds_like_fp32(tiny_dir, monkeypatch):
     assert b.dtype == np.float32 and (a * b).sum(axis=1).min() > 0.999
 
 
+@pytest.mark.parametrize(
+    ("amx", "avx512_bf16", "device", "pays"),
+    [
+        (True, False, "cpu", True),  # Intel Sapphire Rapids on
+        (False, True, "cpu", True),  # AMD Zen 4: native bfloat16 dot products, 1.6x float32
+        (False, False, "cpu", False),  # emulated bfloat16 is slower than float32
+        (True, True, "cuda", False),  # a GPU keeps float32
+        (RuntimeError, True, "cpu", True),  # a probe that cannot answer does not hide the other
+        (RuntimeError, RuntimeError, "cpu", False),
+        (None, None, "cpu", False),  # a torch without the probes
+    ],
+)
+def test_bf16_pays_on_native_bfloat16(monkeypatch, amx, avx512_bf16, device, pays):
+    import torch
+
+    from pipeline.models.focus_encoder import bf16_pays
+
+    def probe(answer):
+        def call():
+            if answer is RuntimeError:
+                raise RuntimeError("no cpuinfo")
+            return answer
+
+        return call
+
+    for name, answer in (("_is_amx_tile_supported", amx), ("_is_avx512_bf16_supported", avx512_bf16)):
+        if answer is None:
+            monkeypatch.delattr(torch.cpu, name, raising=False)
+        else:
+            monkeypatch.setattr(torch.cpu, name, probe(answer), raising=False)
+    assert bf16_pays(torch.device(device)) is pays
+
+
 def test_learned_encoder_bad_options(tiny_dir, tmp_path):
     with pytest.raises(ModelLoadError, match="pooling"):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"pooling": "max"}))

@@ -24,8 +24,8 @@ stored views' embeddings, so it is part of the onboarding fingerprint.
 frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of its long side of render gray
 on every side before the square padding; the stored views are embedded as rendered, so the option is left
 out of the onboarding fingerprint (:data:`pipeline.profiles.UNFINGERPRINTED_OPTIONS`). ``precision``
-``auto`` (default) runs the network in bfloat16 where that pays (:func:`bf16_pays`: a CPU with AMX), else
-float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by
+``auto`` (default) runs the network in bfloat16 where that pays (:func:`bf16_pays`: a CPU with AMX or
+AVX512-BF16), else float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by
 a cosine of about 1e-4, so it is not fingerprinted either. Rows are L2-normalised float32, so the stage-2
 score is a cosine.
 """
@@ -67,18 +67,22 @@ def square_on(image: Image.Image, fill: tuple[int, int, int]) -> Image.Image:
 
 
 def bf16_pays(device) -> bool:
-    """Whether bfloat16 is the faster choice on ``device``: a CPU with AMX tiles (Intel Sapphire
-    Rapids on), where it runs the ViT-S/14 2.4-3.3x faster than float32 (docs/performance.md); elsewhere
-    float32, since bfloat16 without AMX is emulated and slower."""
+    """Whether bfloat16 is the faster choice on ``device``: a CPU with native bfloat16 arithmetic, either
+    AMX tiles (Intel Sapphire Rapids on: the ViT-S/14 2.4-3.3x faster than float32) or AVX512-BF16 (e.g.
+    AMD Zen 4: 1.6x); elsewhere float32, since bfloat16 without them is emulated and slower
+    (docs/performance.md, "bfloat16 on AVX512-BF16")."""
     import torch
 
     if device.type != "cpu":
         return False
-    probe = getattr(torch.cpu, "_is_amx_tile_supported", None)
-    try:
-        return bool(probe()) if probe is not None else False
-    except RuntimeError:
-        return False
+    for name in ("_is_amx_tile_supported", "_is_avx512_bf16_supported"):
+        probe = getattr(torch.cpu, name, None)
+        try:
+            if probe is not None and bool(probe()):
+                return True
+        except RuntimeError:
+            continue
+    return False
 
 
 def with_margin(image: Image.Image, margin: float, fill: tuple[int, int, int]) -> Image.Image:

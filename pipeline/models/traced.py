@@ -25,7 +25,7 @@ from typing import Any
 
 def hidden_states(net: Any, bf16: bool = False) -> Any:
     """``net`` (a ``Dinov2Model``) as a module mapping float32 pixels to float32 ``last_hidden_state``;
-    with ``bf16`` the weights and the arithmetic are bfloat16 (faster on CPUs with AMX)."""
+    with ``bf16`` the weights and the arithmetic are bfloat16 (faster on CPUs with AMX or AVX512-BF16)."""
     import torch
 
     class HiddenStates(torch.nn.Module):
