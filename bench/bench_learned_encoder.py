@@ -31,7 +31,8 @@ def main() -> int:
     import torch
     from PIL import Image
 
-    from pipeline.models.focus_encoder import LearnedViewEncoder, bf16_pays
+    from pipeline.models.focus_encoder import LearnedViewEncoder
+    from pipeline.models.precision import bf16_pays
     from pipeline.store import Store
 
     store = Store.open(args.store)

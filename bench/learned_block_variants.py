@@ -91,8 +91,9 @@ def dump_variants(store: str, dumps: list[Path]) -> None:
     """Writes ``block11_<size>.npz`` (``views_*``, ``rois_*``, ``view_mesh``) into every dump."""
     import torch
 
-    from pipeline.models.focus_encoder import bf16_pays, first_blocks
+    from pipeline.models.focus_encoder import first_blocks
     from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+    from pipeline.models.precision import bf16_pays
 
     if all((d / f"block11_{s}.npz").exists() for d in dumps for s in SIZES):
         return
@@ -118,8 +119,9 @@ def dump_extra(store: str, dumps: list[Path]) -> None:
     """Writes ``block11_224_extra.npz`` (mirrored views and ROIs, framed ROIs: block 11's CLS) into every dump."""
     import torch
 
-    from pipeline.models.focus_encoder import bf16_pays, first_blocks, with_margin
+    from pipeline.models.focus_encoder import first_blocks, with_margin
     from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+    from pipeline.models.precision import bf16_pays
     from pipeline.query.settings import GRAY
 
     if all((d / "block11_224_extra.npz").exists() for d in dumps):

@@ -37,7 +37,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import learned_ltr as ltr  # noqa: E402
 from learned_features import dump_rois, view_images  # noqa: E402
 from learned_fusion import bootstrap, cosine_per_model, ranks_of  # noqa: E402
-from learned_layers import layer_scores  # noqa: E402
+from learned_layers import dump_layers, layer_scores  # noqa: E402
 from learned_view_cues import in_raw4, rates, refit, replay_parser  # noqa: E402
 
 TARGETS = (40, 60, 80, 110, 150)
@@ -63,8 +63,9 @@ def shipped_net():
     would with precision ``auto``)."""
     import torch
 
-    from pipeline.models.focus_encoder import bf16_pays, first_blocks
+    from pipeline.models.focus_encoder import first_blocks
     from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+    from pipeline.models.precision import bf16_pays
 
     return first_blocks(load_backbone(focus_backbone_dir()), ltr.shipped_block()), bf16_pays(
         torch.device("cpu")
@@ -187,6 +188,7 @@ def main() -> int:
     targets = [float(x) for x in args.targets.split(",")]
     dumps = [Path(d) for d in (*args.train, args.test, *([args.confirm] if args.confirm else []))]
     luminance_stats(args.store, dumps)
+    dump_layers(args.store, dumps)  # the unnormalised baseline of a dump learned_layers.py never saw
     dump_exposure(args.store, dumps, targets)
     patch = with_exposure(targets)
     featsets = {"raw4": ltr.FEATSETS["raw4"]} | {f"E{t:g}": in_raw4(f"E{t:g}") for t in targets}

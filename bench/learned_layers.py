@@ -59,8 +59,8 @@ def dump_layers(store: str, dumps: list[Path]) -> None:
     """Writes ``layers_224.npz`` (``views``, ``rois``: blocks x rows x hidden; ``view_mesh``) into each dump."""
     import torch
 
-    from pipeline.models.focus_encoder import bf16_pays
     from pipeline.models.focus_weights import focus_backbone_dir, load_backbone
+    from pipeline.models.precision import bf16_pays
 
     todo = [d for d in dumps if not (d / CACHE).exists()]
     if not todo:

@@ -168,7 +168,8 @@ def test_roi_margin_frames_only_the_query_roi(tiny_dir):
 
 
 def test_bf16_embeds_like_fp32(tiny_dir, monkeypatch):
-    from pipeline.models.focus_encoder import PRECISION_ENV, LearnedViewEncoder, bf16_pays
+    from pipeline.models.focus_encoder import LearnedViewEncoder
+    from pipeline.models.precision import PRECISION_ENV, bf16_pays
 
     images = [photo(5), photo(6, (30, 70))]
     full = LearnedViewEncoder(str(tiny_dir), pooling="mean", size=56, precision="fp32")
@@ -204,7 +205,7 @@ def test_bf16_embeds_like_fp32(tiny_dir, monkeypatch):
 def test_bf16_pays_on_native_bfloat16(monkeypatch, amx, avx512_bf16, device, pays):
     import torch
 
-    from pipeline.models.focus_encoder import bf16_pays
+    from pipeline.models.precision import bf16_pays
 
     def probe(answer):
         def call():

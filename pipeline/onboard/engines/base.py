@@ -21,7 +21,7 @@ from pipeline.onboard.config import RunSpec
 from pipeline.onboard.guard import RemovalGuardError, check_removals
 from pipeline.onboard.interrupt import RunInterrupted, StopFlag
 from pipeline.onboard.plan import Plan, make_plan
-from pipeline.onboard.stages import STAGE_NAMES, Step
+from pipeline.onboard.stages import STAGE_NAMES, Step, decoded
 from pipeline.onboard.stages.base import split_errors
 from pipeline.store import Store, utcnow
 
@@ -297,23 +297,24 @@ class Engine:
 
         counted: dict[str, set[str]] = {}
         stopped = False
-        for step in self.run_spec.downstream:
-            step_ids = [m for m in ids if m in plan.todo[step.key] and m not in failed]
-            if not step_ids:
-                continue
-            if self.stop.requested and self.STOP_BETWEEN_STEPS:  # keep what is finished; the rest waits
-                stopped = True
-                break
-            out = outputs(step, step_ids, lambda s=step, i=step_ids: self._input(s, batch, i))
-            rows, errs = split_errors(out, step.stage.target(out), step.stage.name, self.run_id, paths)
-            errors.append(errs)
-            failed |= set(errs.column("mesh_id").to_pylist())
-            tables[step.dataset] = rows
-            batch[step.key] = rows
-            new = set(step_ids) - counted.setdefault(step.stage.name, set())
-            counted[step.stage.name] |= new
-            bars[step.stage.name].update(len(new))
-            self.done[step.stage.name] = self.done.get(step.stage.name, 0) + len(new)
+        with decoded.batch_scope():  # the batch's stages decode each view once
+            for step in self.run_spec.downstream:
+                step_ids = [m for m in ids if m in plan.todo[step.key] and m not in failed]
+                if not step_ids:
+                    continue
+                if self.stop.requested and self.STOP_BETWEEN_STEPS:  # keep what is finished; the rest waits
+                    stopped = True
+                    break
+                out = outputs(step, step_ids, lambda s=step, i=step_ids: self._input(s, batch, i))
+                rows, errs = split_errors(out, step.stage.target(out), step.stage.name, self.run_id, paths)
+                errors.append(errs)
+                failed |= set(errs.column("mesh_id").to_pylist())
+                tables[step.dataset] = rows
+                batch[step.key] = rows
+                new = set(step_ids) - counted.setdefault(step.stage.name, set())
+                counted[step.stage.name] |= new
+                bars[step.stage.name].update(len(new))
+                self.done[step.stage.name] = self.done.get(step.stage.name, 0) + len(new)
 
         if meshes_rows:
             tables["meshes"] = pa.Table.from_pylist(meshes_rows, schema=schemas.MESHES)

@@ -14,7 +14,7 @@ class CaptionStage(ModelStage):
     """Captions every view with the profile's captioner (built once, lazily)."""
 
     def __call__(self, views: pa.Table) -> pa.Table:
-        from pipeline.mesh.render import decode_png
+        from pipeline.onboard.stages.decoded import decoded_view
 
         model = self.model  # a model that cannot load ends the run (ModelLoadError), it is no mesh's fault
         from pipeline.mesh.cameras import is_captioned
@@ -31,7 +31,7 @@ class CaptionStage(ModelStage):
         for mesh_id, its in by_mesh.items():
             base = {"mesh_id": mesh_id, "fingerprint": self.fingerprint, "run_id": self.run_id}
             try:
-                texts = model.caption([decode_png(it["image"]) for it in its], self.cfg.prompt)
+                texts = model.caption([decoded_view(it["image"]) for it in its], self.cfg.prompt)
             except Exception as exc:  # a failing mesh becomes an errors row
                 rows.append(error_row(CAPTION_OUT, base, exc))
                 continue

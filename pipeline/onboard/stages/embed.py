@@ -64,6 +64,6 @@ class ImageEmbedStage(EmbedStage):
     """Embeds every view with one of the profile's image encoders (``view_encoder`` or ``clip_image_encoder``)."""
 
     def _encode(self, views: pa.Table):
-        from pipeline.mesh.render import decode_png
+        from pipeline.onboard.stages.decoded import decoded_view
 
-        return self.model.encode_image([decode_png(b) for b in views.column("image").to_pylist()])
+        return self.model.encode_image([decoded_view(b) for b in views.column("image").to_pylist()])

@@ -28,7 +28,7 @@ class FeatureStage:
 
     def __call__(self, views: pa.Table) -> pa.Table:
         from pipeline.localfeat import detect, to_row
-        from pipeline.mesh.render import decode_png
+        from pipeline.onboard.stages.decoded import decoded_view
 
         items = views.select(["mesh_id", "view_index", "image", "fingerprint"]).to_pylist()
         by_mesh: dict[str, list[dict]] = {}
@@ -45,7 +45,7 @@ class FeatureStage:
                         "view_index": it["view_index"],
                         "detector_id": self.features.detector_id(),
                         "source_fingerprint": it["fingerprint"],
-                        **to_row(detect(decode_png(it["image"]), self.features)),
+                        **to_row(detect(decoded_view(it["image"]), self.features)),
                     }
                     for it in its
                 ]
