@@ -3,7 +3,8 @@
 The records were captured with ``tests/golden_ranking.py`` at the code before the ranking became a list of
 steps (main 2da2bd8; the two sample-store records again when the offline profile gained the learned view
 encoder, issue 17, whose fusion changes the sample store's rankings by design, and again each time its
-block, exposure or fusion weights changed, and when OBJ seams stopped rendering as cracks): every mode, fallback unit, threshold, fallback k, verification and prompt weight, the
+block, exposure or fusion weights changed, and when OBJ seams stopped rendering as cracks, and when the onboarding's caption batches moved from NumPy to
+torch (scores moved by at most 1e-6, no order or field changed)): every mode, fallback unit, threshold, fallback k, verification and prompt weight, the
 view-level rankings, the evaluation engine's records and the Python API's full JSON, on
 
 * the sample store (data/sample_library onboarded with the offline profile) with its synthetic query set
