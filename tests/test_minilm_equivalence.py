@@ -54,9 +54,14 @@ def test_the_cpu_encoder_imports_no_torch_or_sentence_transformers():
         "MiniLMTextEncoder().encode_text(['a red ball'])\n"
         "print(sorted(m for m in ('sentence_transformers', 'transformers', 'sklearn', 'torch') if m in sys.modules))\n"
     )
+    assert _printed_by(code) == "[]"
+
+
+def _printed_by(code: str) -> str:
+    """What ``code`` prints in a fresh interpreter (which must exit 0)."""
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    return out.stdout.strip()
 
 
 def _batch_of(n: int) -> list[str]:
@@ -79,9 +84,9 @@ def test_a_batch_runs_through_torch_and_equals_numpy(monkeypatch):
     from pipeline.models.precision import PRECISION_ENV
 
     texts = _batch_of(minilm_bert.TORCH_MIN_TEXTS + 5) + TEXTS
-    numpy_rows = MiniLMTextEncoder(batch_size=16)
-    numpy_rows._model._cpu_torch = {}  # "no torch here": the NumPy forward for every batch
-    ref = numpy_rows.encode_text(texts)
+    with monkeypatch.context() as m:  # the NumPy forward for every call
+        m.setattr(minilm_bert, "TORCH_MIN_TEXTS", len(texts) + 1)
+        ref = MiniLMTextEncoder(batch_size=16).encode_text(texts)
 
     calls = []
     real = minilm_bert.bert_forward
@@ -121,6 +126,4 @@ def test_a_batch_never_loads_torch_into_a_process_without_it():
         "MiniLMTextEncoder().encode_text(_batch_of(TORCH_MIN_TEXTS + 1))\n"
         "print('torch' in sys.modules)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "False"
+    assert _printed_by(code) == "False"

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.models.precision import requested
+from pipeline.models.precision import requested, use_bf16
 
 #: sentence-transformers' default when ``sentence_bert_config.json`` is absent
 DEFAULT_MAX_SEQ_LENGTH = 256
@@ -202,11 +202,9 @@ class MeanPooledBert:
         if self._cpu_torch is None:
             import torch
 
-            from pipeline.models.precision import use_bf16
-
             dtype = torch.bfloat16 if use_bf16(self.precision, torch.device("cpu")) else torch.float32
             self._cpu_torch = {k: torch.from_numpy(v).to(dtype) for k, v in self.weights.items()}
-        return self._cpu_torch or None
+        return self._cpu_torch
 
     def encode(self, texts: list[str], batch_size: int = 64) -> np.ndarray:
         """(n, dim) float32 mean-pooled vectors (not normalised), batched in input order."""
