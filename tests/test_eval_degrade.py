@@ -36,5 +36,8 @@ def test_occluder_hides_part_of_the_object_only():
 def test_loose_mask_and_box():
     _, mask = scene()
     assert grow_mask(mask, 3).sum() > mask.sum() and grow_mask(mask, 0) is mask
+    shrunk = grow_mask(mask, -2)
+    assert shrunk.sum() == 56 * 76 and not (shrunk & ~mask).any()  # 2 px off every side
+    assert grow_mask(mask, -40) is mask  # an erosion that would empty the mask keeps it
     x0, y0, x1, y1 = jitter_box((40, 30, 120, 90), mask.shape, np.random.default_rng(0), 0.12)
     assert 0 <= x0 <= 50 and 0 <= y0 <= 40 and 110 <= x1 <= 160 and 80 <= y1 <= 120

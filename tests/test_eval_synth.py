@@ -119,3 +119,50 @@ def test_photo_backgrounds_need_a_folder():
     assert "photo" not in SynthConfig().backgrounds  # dropped without --photo-dir
     with pytest.raises(ValueError, match="background"):
         SynthConfig(backgrounds=("sky",))
+
+
+def test_mask_growth_is_chosen_per_set(tmp_path):
+    """``--mask-grow``: the harder set's query masks grow, stay exact or shrink; the images do not change."""
+    from pipeline.evaluate.synth_cli import main
+
+    lib = make_toy_library(tmp_path / "lib", ("001_red_box",))
+    base = ["--library", str(lib), "--per-mesh", "2", "--seed", "5", "--size", "160x120", "--hard"]
+    base += ["--backgrounds", "noise", "--no-progress"]
+    sets = {}
+    for name, grow in (("grown", "3,3"), ("exact", "0,0"), ("shrunk", "-2,-2")):  # "=" lets "-2" be a value
+        assert main([*base, "--out", str(tmp_path / name), f"--mask-grow={grow}"]) == 0
+        sets[name] = _load(tmp_path / name)
+    assert main([*base, "--out", str(tmp_path / "default")]) == 0
+    assert {q["meta"]["mask_grow_px"] for q in _load(tmp_path / "default")} <= set(range(5))
+
+    def pixels(name: str, q: dict) -> int:
+        return int((np.asarray(Image.open(tmp_path / name / q["mask"])) > 0).sum())
+
+    for grown, exact, shrunk in zip(sets["grown"], sets["exact"], sets["shrunk"], strict=True):
+        assert (grown["meta"]["mask_grow_px"], exact["meta"]["mask_grow_px"]) == (3, 0)
+        assert shrunk["meta"]["mask_grow_px"] == -2
+        for key in ("image",):
+            assert (tmp_path / "grown" / grown[key]).read_bytes() == (
+                tmp_path / "exact" / exact[key]
+            ).read_bytes()
+        assert pixels("grown", grown) > pixels("exact", exact) > pixels("shrunk", shrunk) > 0
+        assert exact["box"] == grown["box"]  # ranges of one width draw alike: the box is the visible object's
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [(["--hard", "--mask-grow", "4,1"], "LO <= HI"), (["--mask-grow", "0,0"], "needs --hard"),
+     (["--hard", "--mask-grow", "0,99"], "99")],
+)  # fmt: skip
+def test_mask_growth_refuses_bad_ranges(tmp_path, capsys, args, message):
+    from pipeline.evaluate.synth_cli import main
+
+    lib = make_toy_library(tmp_path / "lib", ("001_red_box",))
+    try:
+        code = main(["--library", str(lib), "--out", str(tmp_path / "out"), "--no-progress", *args])
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "queries.jsonl").exists()

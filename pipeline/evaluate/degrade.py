@@ -27,7 +27,7 @@ class DegradeConfig:
     jpeg_quality: tuple[int, int] = (35, 90)
     occlusion_prob: float = 0.5  # chance of a partial occluder
     occlusion_cover: tuple[float, float] = (0.1, 0.4)  # share of the object's box area it covers
-    mask_dilate_px: tuple[int, int] = (0, 4)  # the query mask grows by this many pixels
+    mask_dilate_px: tuple[int, int] = (0, 4)  # the query mask grows by this many pixels (negative: shrinks)
     box_jitter: float = 0.12  # the query box grows/shifts by up to this share of its size per side
 
 
@@ -110,12 +110,16 @@ def occlude(
 
 
 def grow_mask(mask: np.ndarray, px: int) -> np.ndarray:
-    """``mask`` dilated by ``px`` pixels (a segmenter's typical over-reach)."""
-    if px <= 0:
+    """``mask`` dilated by ``px`` pixels (a segmenter's typical over-reach), or eroded by ``-px`` (its
+    under-reach). An erosion that would empty the mask keeps it as it was."""
+    if px == 0:
         return mask
     from scipy import ndimage
 
-    return ndimage.binary_dilation(mask, iterations=int(px))
+    if px > 0:
+        return ndimage.binary_dilation(mask, iterations=int(px))
+    shrunk = ndimage.binary_erosion(mask, iterations=int(-px))
+    return shrunk if shrunk.any() else mask
 
 
 def jitter_box(box: tuple[float, float, float, float], shape, rng: np.random.Generator, amount: float):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from pipeline.cli_common import OneLineParser, fail, image_size, non_negative_int, positive_int
+from pipeline.cli_common import OneLineParser, fail, image_size, non_negative_int, number_list, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -55,9 +55,40 @@ def build_parser() -> argparse.ArgumentParser:
         help="the harder set: white balance, exposure, blur, noise, JPEG, partial occluders, masks a few "
         "pixels too large and loose boxes (use with --photo-dir and --backgrounds photo)",
     )
+    p.add_argument(
+        "--mask-grow",
+        type=mask_grow_range,
+        default=None,
+        metavar="LO,HI",
+        help="with --hard: the query mask grows by LO..HI pixels, drawn per query; negative shrinks it "
+        "(default: 0,4, a segmenter's over-reach; 0,0 gives exact masks, as in labelled datasets; write "
+        "--mask-grow=-2,0 when LO is negative)",
+    )
     p.add_argument("--limit", type=positive_int, help="only the first N meshes")
     p.add_argument("--no-progress", action="store_true")
     return p
+
+
+def mask_grow_range(text: str) -> tuple[int, int]:
+    """``type=`` for ``--mask-grow``: ``LO,HI`` pixels, ``-32 <= LO <= HI <= 32``."""
+    values = number_list(int, -32, 32, max_items=2)(text)
+    if len(values) != 2 or values[0] > values[1]:
+        raise argparse.ArgumentTypeError(f"expected LO,HI with LO <= HI, got {text!r}")
+    return values
+
+
+def degrade_config(args):
+    """The harder set's degradations (``None`` without ``--hard``); ``--mask-grow`` without it is an error."""
+    from dataclasses import replace
+
+    from pipeline.evaluate.degrade import DegradeConfig
+
+    if not args.hard:
+        if args.mask_grow is not None:
+            raise ValueError("--mask-grow needs --hard (the plain set's masks are exact)")
+        return None
+    cfg = DegradeConfig()
+    return cfg if args.mask_grow is None else replace(cfg, mask_dilate_px=tuple(args.mask_grow))
 
 
 def store_render_config(store_path: str):
@@ -74,7 +105,6 @@ def main(argv: list[str]) -> int:
     from dataclasses import replace
     from pathlib import Path
 
-    from pipeline.evaluate.degrade import DegradeConfig
     from pipeline.evaluate.library import read_folder_meshes, read_store_meshes
     from pipeline.evaluate.synth import SynthConfig, generate
     from pipeline.store import StoreError
@@ -92,7 +122,7 @@ def main(argv: list[str]) -> int:
             prompt_template=args.prompt_template,
             names=names,
             class_pattern=args.class_pattern or None,
-            degrade=DegradeConfig() if args.hard else None,
+            degrade=degrade_config(args),
         )
         if args.store:  # avoid the views this store was rendered with
             cfg = replace(cfg, onboarding=store_render_config(args.store) or cfg.onboarding)
