@@ -184,9 +184,15 @@ def main() -> int:
     p.add_argument(
         "--descriptor", type=float, help="also replay the descriptor on images normalised to this target"
     )
+    p.add_argument(
+        "--dump-only", action="store_true", help="only write exposure_<target>.npz into every dump lacking it"
+    )
     args = p.parse_args()
     targets = [float(x) for x in args.targets.split(",")]
     dumps = [Path(d) for d in (*args.train, args.test, *([args.confirm] if args.confirm else []))]
+    if args.dump_only:
+        dump_exposure(args.store, dumps, targets)
+        return 0
     luminance_stats(args.store, dumps)
     dump_layers(args.store, dumps)  # the unnormalised baseline of a dump learned_layers.py never saw
     dump_exposure(args.store, dumps, targets)

@@ -18,6 +18,9 @@ shipped cue, ``E110``); STORE is the store the dumps were made from (its meshes 
 * ``erosion``: the ROI's foreground (off the render gray) eroded by 1, 2 or 3 px, or by 1 % or 2 % of the
   ROI's long side, before the exposure step (the harder synthetic sets grow their query masks by 0-4 px,
   ``pipeline.evaluate.degrade``; the photos' masks are the dataset's labels).
+* ``erosion_fused`` (not in the default list): the ROI eroded by 1 px in place of the shipped cue, refitted
+  into the fusion and confirmed like ``rings`` (section 10 confirms on an exact-mask set, ``synth --mask-grow
+  0,0``).
 * ``rings``: one more elevation ring of 4 views (30, -45 or 75 degrees; rendered and embedded here, cached
   as ``rings.npz`` beside the first training dump), the model's score the max over its 12 stored views and
   the ring's. Also refitted into the shipped cue set as ``bench/learned_ltr.py`` fits (synthetic dumps
@@ -171,6 +174,29 @@ def erosion(dumps: list[Path], net, bf16: bool) -> None:
             print(f"erosion, {d.name}, {name}: {rates(ranks_of(score, exp), kind)}", flush=True)
 
 
+def erosion_fused(args, dumps: list[Path], net, bf16: bool, px: int = 1) -> None:
+    """The ROI eroded by ``px`` px in place of the shipped cue, refitted into the fusion like ``rings``
+    (cached per dump as ``erode<px>_110.npz``)."""
+    for d in dumps:
+        path = d / f"erode{px}_{TARGET}.npz"
+        if not path.exists():
+            recs = json.loads((d / "queries.json").read_text())
+            np.savez(path, rois=embed_normalised([eroded(im, px) for im in dump_rois(d, recs)], net, bf16))
+
+    def patch(D, d):
+        n = D["desc"].shape[1]
+        E = np.load(d / f"exposure_{TARGET}.npz")
+        D["E110"] = ltr.exposure_scores(d, TARGET, n)
+        D[f"ER{px}"] = cosine_per_model(
+            np.load(d / f"erode{px}_{TARGET}.npz")["rois"], E["views"], E["view_mesh"], n
+        )
+        return D
+
+    featsets = {"raw4": ltr.FEATSETS["raw4"], "E110": in_raw4("E110"), f"ER{px}": in_raw4(f"ER{px}")}
+    refit(args.train, args.test, featsets, patch, simplest="E110")
+    confirm(args.train, args.confirm, featsets, patch, base_name="E110")
+
+
 def render_rings(store: str, meshes: list[str], out: Path) -> None:
     """Renders every model on each ring of :data:`RINGS` (4 views) and writes their shipped-cue vectors."""
     from pipeline.mesh.load import load_mesh
@@ -232,7 +258,7 @@ def main() -> int:
     args = p.parse_args()
     dumps = [Path(d) for d in (*args.train, args.test, args.confirm)]
     variants = args.variants.split(",")
-    if {"rotations", "white_balance", "erosion"} & set(variants):
+    if {"rotations", "white_balance", "erosion", "erosion_fused"} & set(variants):
         net, bf16 = shipped_net()
         if "rotations" in variants:
             rotations(dumps, net, bf16)
@@ -240,6 +266,8 @@ def main() -> int:
             white_balance(dumps, net, bf16)
         if "erosion" in variants:
             erosion(dumps, net, bf16)
+        if "erosion_fused" in variants:
+            erosion_fused(args, dumps, net, bf16)
     if "rings" in variants:
         rings(args, dumps)
     return 0
