@@ -227,9 +227,52 @@ def main() -> int:
         print(
             f"   {name}: weights learned, descriptor, ROI caption, prompt {np.round(w, 3).tolist()}, verification {wv:.3f}"
         )
+    weights = {}
+    for name, fn in cues.items():
+        weights[name] = ltr.fit_all(T, fn)
     for name, D, groups in (("photos", P, P["photo"]), (Path(args.confirm).name, F, F["label"])):
         print(f"   {name}: {per_kind(D, ranks['adapted'][id(D)], ranks['shipped'][id(D)], groups)}")
+
+    print(
+        "5. open set: absent rejected where 95 % of correct top-1 answers are accepted (one feature, threshold"
+    )
+    print(
+        "   set on these answers: compares, does not choose); absent = the YCB-Video objects' queries against"
+    )
+    print("   the library without them, whose adapter is the one trained on that library (the generic one):")
+    for D in (P, F):
+        D["AD_absent"] = adapted(D, A_gen, V3)
+    for name, D in (("photos", P), (Path(args.confirm).name, F)):
+        line = []
+        for cue, fn in cues.items():
+            w, wv = weights[cue]
+            full = ltr.scores(np.stack(fn(D)), w, ltr.bonus(D), wv)
+            absent_cues = np.stack([D["AD_absent"] if cue == "adapted" else D["L"]["shipped"], *fn(D)[1:]])
+            absent_cues[:, :, ~outside] = -10.0  # the left-out models: not in this library
+            gone = ltr.scores(absent_cues, w, ltr.bonus(D), wv)[:, outside]
+            line.append(f"{cue} {open_set_rates(D, full, gone)}")
+        print(f"   {name}: {'; '.join(line)}")
     return 0
+
+
+def top1(s: np.ndarray, feat: str) -> np.ndarray:
+    """Each query's best score (``score``) or how many standard deviations it stands above the library (``z``)."""
+    t = s.max(axis=1)
+    return t if feat == "score" else (t - s.mean(axis=1)) / np.maximum(s.std(axis=1), 1e-6)
+
+
+def open_set_rates(D: dict, full: np.ndarray, gone: np.ndarray) -> str:
+    """Absent rejected at 95 % of correct accepted, by the top-1 score and by its z-score over the library."""
+    from pipeline.evaluate.openset import YCB_VIDEO_LABELS
+
+    correct = ranks_of(full, D["exp"]) == 1
+    absent = np.isin(D["label"], YCB_VIDEO_LABELS)
+    out = []
+    for feat in ("score", "z"):
+        ok, ab = top1(full, feat)[correct], top1(gone, feat)[absent]
+        threshold = np.quantile(ok, 0.05)
+        out.append(f"{feat} {100 * np.mean(ab < threshold):.1f} %")
+    return f"(correct {int(correct.sum())}, absent {int(absent.sum())}) " + ", ".join(out)
 
 
 if __name__ == "__main__":
