@@ -198,8 +198,11 @@ def main() -> int:
     A_gen = train(R, t, outside, V3, lam, r)
     for name, D, groups in (("photos", P, P["photo"]), (Path(args.confirm).name, F, F["label"])):
         sel = np.isin(D["label"], YCB_VIDEO_LABELS)
-        sub = {k: (v[sel] if isinstance(v, np.ndarray) and len(v) == len(sel) else v) for k, v in D.items()}
-        sub["exp"] = [e for e, s in zip(D["exp"], sel, strict=True) if s]
+        sub = {
+            "R": D["R"][sel],
+            "kind": D["kind"][sel],
+            "exp": [e for e, s in zip(D["exp"], sel, strict=True) if s],
+        }
         base = ranks_of(adapted(sub, ident, V3), sub["exp"])
         print(
             f"   {name} (n={int(sel.sum())}): {per_kind(sub, ranks_of(adapted(sub, A_gen, V3), sub['exp']), base, groups[sel])}"
@@ -218,18 +221,14 @@ def main() -> int:
         "shipped": lambda D: [D["L"]["shipped"], *ltr.FEATSETS["raw4"](D)[1:]],
         "adapted": lambda D: [D["AD"], *ltr.FEATSETS["raw4"](D)[1:]],
     }
-    ranks = {}
+    weights, full, ranks = {}, {}, {}
     for name, fn in cues.items():
-        w, wv = ltr.fit_all(T, fn)
-        ranks[name] = {
-            id(D): ranks_of(ltr.scores(np.stack(fn(D)), w, ltr.bonus(D), wv), D["exp"]) for D in (P, F)
-        }
+        w, wv = weights[name] = ltr.fit_all(T, fn)
+        full[name] = {id(D): ltr.scores(np.stack(fn(D)), w, ltr.bonus(D), wv) for D in (P, F)}
+        ranks[name] = {id(D): ranks_of(full[name][id(D)], D["exp"]) for D in (P, F)}
         print(
             f"   {name}: weights learned, descriptor, ROI caption, prompt {np.round(w, 3).tolist()}, verification {wv:.3f}"
         )
-    weights = {}
-    for name, fn in cues.items():
-        weights[name] = ltr.fit_all(T, fn)
     for name, D, groups in (("photos", P, P["photo"]), (Path(args.confirm).name, F, F["label"])):
         print(f"   {name}: {per_kind(D, ranks['adapted'][id(D)], ranks['shipped'][id(D)], groups)}")
 
@@ -246,11 +245,10 @@ def main() -> int:
         line = []
         for cue, fn in cues.items():
             w, wv = weights[cue]
-            full = ltr.scores(np.stack(fn(D)), w, ltr.bonus(D), wv)
             absent_cues = np.stack([D["AD_absent"] if cue == "adapted" else D["L"]["shipped"], *fn(D)[1:]])
             absent_cues[:, :, ~outside] = -10.0  # the left-out models: not in this library
             gone = ltr.scores(absent_cues, w, ltr.bonus(D), wv)[:, outside]
-            line.append(f"{cue} {open_set_rates(D, full, gone)}")
+            line.append(f"{cue} {open_set_rates(D, full[cue][id(D)], gone)}")
         print(f"   {name}: {'; '.join(line)}")
     return 0
 

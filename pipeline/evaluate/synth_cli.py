@@ -88,7 +88,7 @@ def degrade_config(args):
             raise ValueError("--mask-grow needs --hard (the plain set's masks are exact)")
         return None
     cfg = DegradeConfig()
-    return cfg if args.mask_grow is None else replace(cfg, mask_dilate_px=tuple(args.mask_grow))
+    return cfg if args.mask_grow is None else replace(cfg, mask_dilate_px=args.mask_grow)
 
 
 def store_render_config(store_path: str):
