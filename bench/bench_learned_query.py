@@ -5,7 +5,8 @@
 Opens two Retrievers on the same store (the default, and ``--model learned_encoder=none``), warms both,
 then alternates three configurations over the first ``--n`` queries (masks, verification on by default):
 the default, the default with the learned ROI embedding run in turn instead of beside the rest
-(``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), and descriptor only. Prints the p50 of the total
+(``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), descriptor only, and, on a store with a query
+adapter (pipeline/adapter), the default without it (``--no-adapter``). Prints the p50 of the total
 and of the embedding step for each, and the ratios (the numbers that survive a loaded machine).
 ``--torch-threads N`` sets torch's and BLAS's threads as the query CLI and the service do (their default is
 half the cores, 1 on 2 cores); without it, the libraries' own defaults (every core).
@@ -48,6 +49,8 @@ def main() -> int:
         "learned, in turn": (learned, "0"),
         "descriptor": (Retriever.open(args.store, model_overrides={"learned_encoder": "none"}), "1"),
     }
+    if learned.tables.adapter is not None:
+        rs["learned, no adapter"] = (Retriever.open(args.store, settings_changes={"adapter": False}), "1")
     for r, _ in rs.values():
         r.query(qs[0].image, qs[0].prompt, mask=qs[0].mask)  # warm
     total = {k: [] for k in rs}
@@ -68,6 +71,8 @@ def main() -> int:
     p50 = {k: statistics.median(v) for k, v in total.items()}
     print(f"ratio learned / descriptor p50: {p50['learned'] / p50['descriptor']:.2f}")
     print(f"ratio learned / learned in turn p50: {p50['learned'] / p50['learned, in turn']:.2f}")
+    if "learned, no adapter" in p50:
+        print(f"ratio learned / learned without the adapter p50: {p50['learned'] / p50['learned, no adapter']:.2f}")
     for r in {id(r): r for r, _ in rs.values()}.values():
         r.close()
     return 0

@@ -133,16 +133,38 @@ RUNS = pa.schema(
     ]
 )
 
+#: The per-store query adapter of the learned view encoder (:mod:`pipeline.adapter`): one row per fit; a
+#: query uses the latest row whose ``provenance`` matches the models and fingerprints it reads.
+ADAPTERS = pa.schema(
+    [
+        pa.field("encoder_id", pa.string(), nullable=False),  # the learned view encoder's model key
+        pa.field("provenance", pa.string(), nullable=False),  # fingerprint of what it was fitted on
+        pa.field("view_fingerprint", pa.string(), nullable=False),  # embed_image:learned_encoder step
+        pa.field("probe_fingerprint", pa.string(), nullable=False),  # probe step
+        pa.field("n_models", pa.int64(), nullable=False),
+        pa.field("n_probes", pa.int64(), nullable=False),
+        pa.field("dim", pa.int32(), nullable=False),
+        pa.field("matrix", pa.binary(), nullable=False),  # dim x dim float32, little-endian, row-major
+        pa.field("fit_json", pa.string()),  # FitConfig
+        pa.field("seconds", pa.float64()),
+        pa.field("run_id", pa.string(), nullable=False),
+        pa.field("created_at", TS, nullable=False),
+    ]
+)
+
 #: Fixed-schema tables; embedding tables are built with :func:`embedding_schema`.
 TABLES: dict[str, pa.Schema] = {
     "meshes": MESHES,
     "views": VIEWS,
     "captions": CAPTIONS,
     "view_features": VIEW_FEATURES,
+    "adapters": ADAPTERS,
     "errors": ERRORS,
     "runs": RUNS,
 }
-EMBEDDING_TABLES = ("text_embeddings", "image_embeddings")
+#: ``probe_embeddings``: the learned encoder's vectors of probe queries made from views (``view_index``: the
+#: view a probe was made from), :mod:`pipeline.adapter.probes`
+EMBEDDING_TABLES = ("text_embeddings", "image_embeddings", "probe_embeddings")
 
 #: Row keys: a row with the same key and a later run_id supersedes an earlier one.
 KEYS: dict[str, tuple[str, ...]] = {
@@ -152,6 +174,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "view_features": ("mesh_id", "view_index", "fingerprint"),
     "text_embeddings": ("mesh_id", "view_index", "fingerprint"),
     "image_embeddings": ("mesh_id", "view_index", "fingerprint"),
+    "probe_embeddings": ("mesh_id", "view_index", "fingerprint"),
 }
 
 

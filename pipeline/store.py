@@ -46,7 +46,9 @@ TABLE_ORDER = (
     "captions",
     "text_embeddings",
     "image_embeddings",
+    "probe_embeddings",
     "view_features",
+    "adapters",
     "errors",
     "runs",
 )

@@ -214,8 +214,8 @@ def stage_literals(path: Path, names: set[str]) -> list[str]:
 def test_stages_declared_once():
     from pipeline.onboard.stages import STAGE_NAMES, STAGES
 
-    assert STAGE_NAMES == ("render", "caption", "embed_text", "embed_image", "features")
-    assert [s.input for s in STAGES] == [None, "render", "caption", "render", "render"]
+    assert STAGE_NAMES == ("render", "caption", "embed_text", "embed_image", "probe", "features")
+    assert [s.input for s in STAGES] == [None, "render", "caption", "render", "render", "render"]
     assert stage_literals(STAGE_DECLARATION, set(STAGE_NAMES))  # the check sees the declaration
     # the onboarding wing iterates the declaration (readers look fingerprints up by key in a run's record)
     elsewhere = [
@@ -251,13 +251,18 @@ def test_steps_follow_the_declaration():
 
 
 def test_disabled_stage_has_no_step():
-    """``--local-features none``: the features stage's enabled hook drops its step from the run."""
+    """``--local-features none``: the features stage's enabled hook drops its step from the run (and
+    ``--probes 0`` the probe stage's; a profile without a learned encoder has no probe step)."""
+    from pipeline.adapter.probes import ProbeConfig
     from pipeline.localfeat.config import FeatureConfig
     from pipeline.onboard.config import OnboardConfig
 
     run = OnboardConfig(features=FeatureConfig(detector="none")).resolve()
     assert "features" not in [s.key for s in run.steps]
     assert "features" not in run.fingerprints
+    no_probes = OnboardConfig(probes=ProbeConfig(per_mesh=0)).resolve()  # --probes 0
+    assert "probe" not in no_probes.fingerprints and "probe" in OnboardConfig().resolve().fingerprints
+    assert "probe" not in OnboardConfig(profile="paper").resolve().fingerprints  # no learned encoder
     orb = OnboardConfig(features=FeatureConfig(detector="orb")).resolve()
     assert orb.step("features").fingerprint != OnboardConfig().resolve().step("features").fingerprint
 

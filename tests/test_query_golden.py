@@ -4,7 +4,9 @@ The records were captured with ``tests/golden_ranking.py`` at the code before th
 steps (main 2da2bd8; the two sample-store records again when the offline profile gained the learned view
 encoder, issue 17, whose fusion changes the sample store's rankings by design, and again each time its
 block, exposure or fusion weights changed, and when OBJ seams stopped rendering as cracks, and when the onboarding's caption batches moved from NumPy to
-torch (scores moved by at most 1e-6, no order or field changed)): every mode, fallback unit, threshold, fallback k, verification and prompt weight, the
+torch (scores moved by at most 1e-6, no order or field changed), and when stores gained their query adapter
+(pipeline/adapter: the sample store's rankings rank by the adapted fusion, no top-1 moved; every answer
+gained the ``adapted`` field, so the 78-mesh record's digests moved with its rankings and scores unchanged)): every mode, fallback unit, threshold, fallback k, verification and prompt weight, the
 view-level rankings, the evaluation engine's records and the Python API's full JSON, on
 
 * the sample store (data/sample_library onboarded with the offline profile) with its synthetic query set

@@ -144,6 +144,13 @@ def build_parser() -> argparse.ArgumentParser:
     base.add_argument(
         "--verify-top", type=int_range(0, 1000), help="candidates verified per query, 0..1000 (default: 20)"
     )
+    base.add_argument(
+        "--adapter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="rank with the store's query adapter of the learned encoder (default: on where the store has "
+        "one that matches its models; docs/query.md)",
+    )
     sw = p.add_argument_group("sweeps")
     sw.add_argument(
         "--taus", type=_floats, default=None, help="tau values, e.g. 0.10:0.65:0.05 (the default)"
@@ -238,7 +245,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> int:
     progress = not args.no_progress
     say = print if progress else (lambda *a, **k: None)
     say(f"{len(queries)} queries, {len(library)} library meshes; loading the {args.profile} models")
-    changes = {"verify": args.verify, "verify_top": args.verify_top}
+    changes = {"verify": args.verify, "verify_top": args.verify_top, "adapter": args.adapter}
     engine = Engine.open(args.store, args.profile, overrides, args.device, settings_changes=changes)
     base = Setting(args.mode, args.tau, args.fallback_k, args.roi, args.fallback_unit)
     plan = SweepPlan(base=base)

@@ -7,7 +7,8 @@ meshes), and the query path sees a store only through its active-mesh table (sor
 Dropping the rows of the removed meshes and renumbering ``mesh_idx`` in the same order therefore gives
 stage 1 (tau, the caption fallback and its tie-break by ``mesh_idx``), stage 2 and verification the same
 inputs as a store without those meshes; ``tests/test_openset.py`` checks this against a store built
-without them.
+without them. The store's query adapter, fitted on every model, is refitted on the models left
+(:func:`pipeline.adapter.table.refit_for`), as an onboarding of the smaller library would have.
 """
 
 from __future__ import annotations
@@ -57,6 +58,10 @@ def without_meshes(retriever, mesh_ids) -> object:
     sub.views = _renumbered(tables.views, keep, new_idx)
     learned = getattr(tables, "learned_views", None)  # the learned view encoder's table, where the store has it
     sub.learned_views = None if learned is None else _renumbered(learned, keep, new_idx)
+    if getattr(tables, "adapter", None) is not None:  # the query adapter such a store would have fitted
+        from pipeline.adapter.table import refit_for
+
+        sub.adapter = refit_for(sub, tables.adapter)
     models = {role: retriever.model(role) for role in retriever.required_roles()}
     r = Retriever(
         retriever.store,

@@ -32,6 +32,7 @@ def share(text: str) -> float:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from pipeline.adapter.probes import ProbeConfig
     from pipeline.onboard.config import DEFAULT_MAX_TEXTURE_PIXELS
     from pipeline.onboard.guard import DEFAULT_MAX_REMOVED
     from pipeline.onboard.stages import STAGE_NAMES
@@ -148,6 +149,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=256,
         help="local features kept per view, 16..4096 (default: 256)",
     )
+    p.add_argument(
+        "--probes",
+        type=int_range(0, 64),
+        default=ProbeConfig().per_mesh,
+        metavar="N",
+        help="probe queries per model, made from its own views, on which the store's query adapter of the "
+        f"learned encoder is fitted at the end of the run (default: {ProbeConfig().per_mesh}; 0: no probe "
+        "stage and no adapter; docs/architecture.md, Query adapter)",
+    )
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="executor (default: local)")
     p.add_argument(
         "--address",
@@ -200,6 +210,7 @@ def run(args) -> int:
     """The onboarding command on parsed arguments; its exit code."""
     from pathlib import Path
 
+    from pipeline.adapter.probes import ProbeConfig
     from pipeline.localfeat import FeatureConfig
     from pipeline.mesh.settings import RenderConfig
     from pipeline.onboard.config import OnboardConfig
@@ -238,6 +249,7 @@ def run(args) -> int:
             force=tuple(args.force),
             engine=args.engine,
             features=FeatureConfig(detector=args.local_features, max_keypoints=args.max_keypoints),
+            probes=ProbeConfig(per_mesh=args.probes),
             ray=RayOptions(
                 address=args.address,
                 render_workers=args.ray_render_workers,

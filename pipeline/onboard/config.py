@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from pipeline.adapter.fit import FitConfig
+from pipeline.adapter.probes import ProbeConfig
 from pipeline.localfeat.config import FeatureConfig
 from pipeline.mesh.settings import RenderConfig
 from pipeline.onboard.engines.ray_options import RayOptions
@@ -35,6 +37,8 @@ class OnboardConfig:
     model_options: dict[str, dict] = field(default_factory=dict)  # per-role extra adapter options
     ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
     features: FeatureConfig = field(default_factory=FeatureConfig)  # local features per view (verification)
+    probes: ProbeConfig = field(default_factory=ProbeConfig)  # probe queries per model (query adapter)
+    adapter: FitConfig = field(default_factory=FitConfig)  # the query adapter's fit (pipeline.adapter)
     max_removed: float = DEFAULT_MAX_REMOVED  # removal guard: share of active files a run may remove
     allow_removal: bool = False  # removal guard off (--allow-removal)
 
@@ -117,6 +121,8 @@ class RunSpec:
             "prompt": cfg.prompt,
             "render": asdict(cfg.render),
             "features": asdict(cfg.features),
+            "probes": cfg.probes.describe(),
+            "adapter": cfg.adapter.describe(),
             "max_faces": cfg.max_faces,
             "render_timeout_s": cfg.render_timeout_s,
             "removal_guard": {"max_removed": cfg.max_removed, "allow_removal": cfg.allow_removal},

@@ -56,6 +56,7 @@ def _run(
         summary = engine.run(library)
         if flag.requested and engine.left():  # it ended early on the stop request: not finished
             raise StopRequested(flag.signum)
+        _refit_adapter(store, spec, run_id, summary, progress)
         summary.status = "ok"
     except RemovalGuardError as exc:
         summary = _status(exc.summary or summary, "refused", engine)
@@ -103,6 +104,24 @@ def _run(
         finally:
             store.close()
     return summary
+
+
+def _refit_adapter(store: Store, spec: RunSpec, run_id: str, summary: RunSummary, progress: bool) -> None:
+    """Refit the store's query adapter when this run changed what it is fitted on (:mod:`pipeline.adapter`)."""
+    import sys
+    import time
+
+    from pipeline.adapter.table import refresh
+
+    t0 = time.perf_counter()
+    fitted = refresh(store, spec, run_id, log=lambda msg: print(msg, file=sys.stderr))
+    summary.seconds["adapter"] = round(time.perf_counter() - t0, 3)
+    if fitted and progress:
+        print(
+            f"query adapter fitted on {fitted['n_probes']} probes of {fitted['n_models']} models "
+            f"in {fitted['seconds']:.1f} s",
+            file=sys.stderr,
+        )
 
 
 def _status(summary: RunSummary, status: str, engine: Engine | None) -> RunSummary:

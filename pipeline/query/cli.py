@@ -82,6 +82,13 @@ def build_parser() -> argparse.ArgumentParser:
         "the image score (default: on for offline stores onboarded with local features)",
     )
     how.add_argument(
+        "--adapter",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="rank with the store's query adapter of the learned encoder, fitted at onboarding on probe "
+        "queries made from its own views (default: on where the store has one; docs/query.md)",
+    )
+    how.add_argument(
         "--verify-top",
         type=int_range(0, 1000),
         metavar="N",
@@ -237,6 +244,7 @@ def _run(args: argparse.Namespace) -> int:
         "verify": args.verify,
         "verify_top": args.verify_top,
         "accept_model": args.accept_model,
+        "adapter": args.adapter,
     }
     retriever = open_retriever(args, settings_changes=settings_changes)
     rank_args = {

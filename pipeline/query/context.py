@@ -41,6 +41,8 @@ def ranking_context(store, profile, tables, settings, *, device, threads) -> Ran
         verifier=LocalVerifier(store, tables.onboarding, mesh_ids, cfg),
         handoff=handoff,
         settings=settings,
+        adapter=None if learned is None else tables.adapter,
+        adapter_note=None if learned is None else tables.adapter_note,
     )
     ctx.calibration, ctx.calibration_mismatch = calibration_for(
         profile, settings, tables.onboarding, fused=learned is not None

@@ -49,8 +49,11 @@ class FusionWeights:
         return max(1.0 - self.desc - self.text - self.prompt, 0.0)
 
     @classmethod
-    def of(cls, settings) -> FusionWeights:
-        """The weights of ``settings`` (``fuse_desc``, ``fuse_text``, ``fuse_prompt``)."""
+    def of(cls, settings, adapted: bool = False) -> FusionWeights:
+        """The weights of ``settings`` (``fuse_desc``, ``fuse_text``, ``fuse_prompt``; with ``adapted``, the
+        ``adapter_fuse_*`` ones the ranking uses with the store's query adapter)."""
+        if adapted:
+            return cls(settings.adapter_fuse_desc, settings.adapter_fuse_text, settings.adapter_fuse_prompt)
         return cls(settings.fuse_desc, settings.fuse_text, settings.fuse_prompt)
 
 

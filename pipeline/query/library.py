@@ -12,6 +12,7 @@ import json
 import threading
 from dataclasses import dataclass
 
+import numpy as np
 import pyarrow as pa
 
 from pipeline.db import connect, load_sql
@@ -148,6 +149,7 @@ class StoreTables:
         self.captions = self._embeddings("caption", self.text_dataset, fps["embed_text"], slice_layout)
         self.views = self._embeddings("view", self.view_dataset, fps["embed_image:view_encoder"])
         self.learned_views = self._learned_views()
+        self.adapter, self.adapter_note = self._adapter()
         if self.captions.num_rows == 0:
             raise QueryError(
                 f"store {store.root} has no caption embeddings for its active meshes: re-run onboarding"
@@ -199,6 +201,28 @@ class StoreTables:
             return None
         table = self._embeddings("learned", dataset, fp, sql="view")
         return table if table.num_rows else None
+
+    def _adapter(self):
+        """The store's query adapter fitted on exactly the learned views this state reads, and a note when
+        the store has one that does not match (``(None, None)`` without probes)."""
+        from pipeline.adapter.table import for_query
+
+        fps = self.onboarding.fingerprints
+        key, probe_fp = self.onboarding.models.get("learned_encoder"), fps.get("probe")
+        if self.learned_views is None or not key or not probe_fp:
+            return None, None
+        ids = self.meshes.column("mesh_id").to_pylist()
+        present = np.unique(self.learned_views.column("mesh_idx").to_numpy())
+        try:
+            adapter = for_query(self.store, key, fps["embed_image:learned_encoder"], probe_fp, [ids[i] for i in present])
+        except ValueError as exc:
+            return None, f"the store's query adapter is not used: {exc}"
+        if adapter is None and self.store.dataset("adapters") is not None:
+            return None, (
+                "the store's query adapter was fitted on other models than it now holds (an onboarding run "
+                "did not finish): ranked without it until a run finishes"
+            )
+        return adapter, None
 
     # ------------------------------------------------------------------ embeddings (cached)
     def _embeddings(self, kind: str, dataset: str, fp: str, layout=None, sql: str | None = None) -> pa.Table:

@@ -13,7 +13,10 @@ def _score(v: float | None) -> str:
 
 def _stage1_line(r: QueryResult) -> str:
     if getattr(r, "fused", False) and r.mode != "text-only":
-        return f"all {r.n_stage1} models ranked by the fused learned / descriptor / text score"
+        how = f"all {r.n_stage1} models ranked by the fused learned / descriptor / text score"
+        if getattr(r, "adapted", False):  # the fused score is the adapted one; the learned cosine shown is plain
+            how += " (learned cosine through the store's query adapter; the cosine shown is the plain one)"
+        return how
     if r.mode == "image-only":
         return f"image-only: all {r.n_stage1} models ranked by stage 2"
     if r.mode == "text-only":

@@ -100,6 +100,7 @@ class QueryResult:
     notes: list[str] = field(default_factory=list)  # e.g. why stage 1 used the exact path
     verdict: object | None = None  # pipeline.query.accept.Verdict: the open-set decision (set by rank)
     fused: bool = False  # ranked by the fused learned / descriptor / text score (pipeline.query.fusion)
+    adapted: bool = False  # the learned cosine went through the store's query adapter (pipeline.adapter)
 
     @property
     def best(self) -> Candidate | None:
@@ -135,6 +136,7 @@ class QueryResult:
             "prompt_weight": self.prompt_weight,
             "n_stage1": self.n_stage1,
             "fused": self.fused,
+            "adapted": self.adapted,
             "candidates": [c.to_dict() for c in self.candidates],
             "timings_ms": {k: round(v, 3) for k, v in self.timings.items()},
         }

@@ -54,6 +54,15 @@ class QuerySettings:
     fuse_all: bool = (
         True  # two-stage mode fuses every model (the text score is a term) instead of cutting at tau
     )
+    # the store's query adapter (pipeline.adapter), when it has one fitted on exactly what the query reads:
+    # the ranking uses the adapted learned cosine with these weights (fitted on the synthetic sets with
+    # the adapted cue, never on the photos: bench/adapter_fusion.py, docs/results.md section 11); the
+    # open-set verdict keeps the plain scores and the weights above
+    adapter: bool = True
+    adapter_fuse_desc: float = 0.150
+    adapter_fuse_text: float = 0.035
+    adapter_fuse_prompt: float = 0.095
+    adapter_fuse_verify_weight: float = 0.117
     # ... up to this many models: a larger library keeps stage 1's tau cut (and its index), and fuses the
     # shortlist, so a query never ranks every view of a million models
     fuse_all_max_models: int = 20_000

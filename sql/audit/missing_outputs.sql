@@ -3,7 +3,9 @@
 -- or local features. Returns one row per (mesh, stage) with fewer rows than that render config makes for
 -- the stage (current_config.expected_views captioned views; expected_rendered_views with the extra
 -- background view, for render, image embeddings and features), and the open error that explains it, if
--- any (no error: the mesh was never processed, e.g. a run was interrupted).
+-- any (no error: the mesh was never processed, e.g. a run was interrupted). The probe stage (query
+-- adapter) makes up to --probes rows per mesh, fewer where a chosen view shows nothing: at least one is
+-- expected.
 WITH have AS (
     SELECT 'render' AS stage, mesh_id, count(*) AS n FROM views GROUP BY mesh_id
     UNION ALL
@@ -12,6 +14,12 @@ WITH have AS (
     SELECT 'embed_text', mesh_id, count(*) FROM text_embeddings GROUP BY mesh_id
     UNION ALL
     SELECT 'embed_image:' || role, mesh_id, count(*) FROM image_embeddings GROUP BY role, mesh_id
+    UNION ALL
+    SELECT 'probe', mesh_id, count(DISTINCT view_index)
+    FROM probe_embeddings_all
+    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'probe')
+        AND mesh_id IN (SELECT mesh_id FROM meshes)
+    GROUP BY mesh_id
     UNION ALL
     SELECT 'features', mesh_id, count(DISTINCT view_index)
     FROM view_features_all
@@ -24,6 +32,7 @@ expected AS (
         f.*,
         CASE
             WHEN f.stage IN ('caption', 'embed_text') THEN c.expected_views
+            WHEN f.stage = 'probe' THEN 1
             ELSE c.expected_rendered_views
         END AS n_expected
     FROM current_fingerprints AS f

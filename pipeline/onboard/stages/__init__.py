@@ -1,6 +1,6 @@
 """Onboarding stages, and :data:`STAGES`: the one declaration of the stages, their order and inputs.
 
-Each stage (``render``, ``caption``, ``embed``, ``features``) is a callable object over Arrow tables that holds its
+Each stage (``render``, ``caption``, ``embed``, ``probe``, ``features``) is a callable object over Arrow tables that holds its
 model for its whole life: it maps an input ``pa.Table`` to an output ``pa.Table`` whose rows either
 conform to a store table or carry an ``error`` (one row per failed mesh), so the same code runs in the
 local engine and under Ray Data ``map_batches`` (:func:`pipeline.onboard.stages.base.split_errors`
@@ -50,6 +50,12 @@ def image_embed_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
     return ImageEmbedStage(cfg, run_id, step, model)
 
 
+def probe_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.probe import ProbeStage
+
+    return ProbeStage(cfg, run_id, step, model)
+
+
 def features_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
     from pipeline.onboard.stages.features import FeatureStage
 
@@ -75,10 +81,20 @@ def image_encoders(profile: Profile) -> tuple[str | None, ...]:
     return ("view_encoder",) + tuple(r for r in optional if getattr(profile, r) is not None)
 
 
+def learned_encoder(profile: Profile) -> tuple[str | None, ...]:
+    """The learned view encoder, where the profile has one (else the stage has no step)."""
+    return ("learned_encoder",) if getattr(profile, "learned_encoder", None) is not None else ()
+
+
 # ---------------------------------------------------------------- whether a stage runs with a config
 def features_enabled(cfg: Any) -> bool:
     """``--local-features none`` drops the features stage."""
     return cfg.features.enabled
+
+
+def probes_enabled(cfg: Any) -> bool:
+    """``--probes 0`` drops the probe stage (and with it the store's query adapter)."""
+    return cfg.probes.enabled
 
 
 # ---------------------------------------------------------------- fingerprints, chained through inputs
@@ -97,6 +113,18 @@ def encoder_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) 
 
     opts = {k: v for k, v in spec.options.items() if k not in UNFINGERPRINTED_OPTIONS}
     return fingerprint({"model": spec.key(), "opts": opts, "in": upstream})
+
+
+def probe_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
+    """The encoder's (as :func:`encoder_fingerprint`), the probe generator's config and the render gray the
+    object is cut from."""
+    return fingerprint(
+        {
+            "encoder": encoder_fingerprint(cfg, spec, upstream),
+            "probes": cfg.probes.describe(),
+            "background": list(cfg.render.background),
+        }
+    )
 
 
 def features_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
@@ -153,6 +181,17 @@ STAGES: tuple[Stage, ...] = (
         embeddings_schema,
         per_encoder=True,
         per_role=True,
+    ),
+    Stage(
+        "probe",
+        "render",
+        "probe_embeddings",
+        learned_encoder,
+        probe_fingerprint,
+        probe_runner,
+        embeddings_schema,
+        per_encoder=True,
+        enabled=probes_enabled,
     ),
     Stage(
         "features",

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 if TYPE_CHECKING:
     import pyarrow as pa
 
+    from pipeline.adapter.probes import ProbeConfig
     from pipeline.localfeat.config import FeatureConfig
     from pipeline.mesh.settings import RenderConfig
     from pipeline.models.registry import ModelSpec
@@ -24,6 +25,7 @@ class StageConfig(Protocol):
 
     render: RenderConfig
     features: FeatureConfig
+    probes: ProbeConfig
     max_faces: int
     max_texture_pixels: int
     prompt_style: str

@@ -20,7 +20,9 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     ctx, order = state.ctx, state.order
     if order is None:
         order = np.arange(len(state.mesh_idx))
-    keys = state.scores.get(key, state.scores.get("image"))
+    # with the query adapter the verdict reads the plain scores its calibration was fitted on (the adapter
+    # pulls an absent object's ROI towards the library's models too): docs/results.md, section 11
+    keys = state.scores.get(f"{key}_plain", state.scores.get(key, state.scores.get("image")))
     inliers = state.scores.get("inliers")
     if inliers is None:
         inliers = np.full(len(state.mesh_idx), -1, np.int64)

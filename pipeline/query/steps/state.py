@@ -94,6 +94,8 @@ class RankContext:
     calibration_mismatch: str | None = None  # why the calibration does not apply to this store
     learned: Any = None  # pipeline.query.stage2.ViewReranker over the learned encoder's views, if any
     handoff: Any = None  # pipeline.query.handoff.HandOff: the candidates' pose-estimator fields (None: none)
+    adapter: Any = None  # pipeline.adapter.table.Adapter fitted on this store state (None: none)
+    adapter_note: str | None = None  # why the store's adapter is not used (it was fitted on other models)
 
     @classmethod
     def from_meshes(cls, meshes, **parts) -> RankContext:
@@ -151,6 +153,7 @@ class RankState:
         out.notes = list(self.notes)
         out.verdict = self.verdict
         out.fused = "learned" in self.scores
+        out.adapted = "learned_adapted" in self.scores
         return out
 
 
