@@ -74,6 +74,23 @@ def _rows(con, store: Store, dataset: str, fp: str, sql: str = "query_view_embed
         con.unregister("query_view_source")
 
 
+def _fit(P: pa.Table, V: pa.Table, present: np.ndarray, n_meshes: int, cfg) -> tuple[np.ndarray, int] | None:
+    """The map fitted on the probes ``P`` of the models ``present`` (their ``mesh_idx``, of ``n_meshes``)
+    against their learned views ``V``, and how many probes it saw; ``None`` when no probe is of those models."""
+    from pipeline.adapter.fit import fit_adapter
+
+    p_idx = np.asarray(P.column("mesh_idx").to_numpy(), np.int64)
+    keep = np.isin(p_idx, present)
+    if not keep.any():
+        return None
+    # models numbered by their position among those with views (the fit's model axis)
+    number = np.full(n_meshes, -1, np.int64)
+    number[present] = np.arange(len(present))
+    v_idx = np.asarray(V.column("mesh_idx").to_numpy(), np.int64)
+    matrix = fit_adapter(_vectors(P)[keep], number[p_idx[keep]], _vectors(V), number[v_idx], cfg)
+    return matrix, int(keep.sum())
+
+
 def latest_for(store: Store, encoder_id: str, wanted: str) -> dict | None:
     """The newest ``adapters`` row of ``encoder_id`` with provenance ``wanted`` (``None`` when none)."""
     if store.dataset("adapters") is None:
@@ -91,7 +108,6 @@ def refresh(store: Store, spec, run_id: str, log=print) -> dict | None:
     """Fit and commit the store's adapter when its provenance or fit config changed (after an onboarding run
     that finished; ``spec``: the run's :class:`~pipeline.onboard.config.RunSpec`). Returns the new row's
     summary, or ``None`` when nothing was fitted (no probe step, nothing changed, too few models)."""
-    from pipeline.adapter.fit import fit_adapter
     from pipeline.db import connect, load_sql
 
     try:
@@ -127,16 +143,11 @@ def refresh(store: Store, spec, run_id: str, log=print) -> dict | None:
     finally:
         con.close()
     present = np.asarray(models.column("mesh_idx").to_numpy(), np.int64)
-    v_idx = np.asarray(V.column("mesh_idx").to_numpy(), np.int64)
-    p_idx = np.asarray(P.column("mesh_idx").to_numpy(), np.int64)
-    keep = np.isin(p_idx, present)
-    if not keep.any():
-        return None
-    # models numbered by their position among those with views (the fit's model axis)
-    number = np.full(int(meshes.num_rows), -1, np.int64)
-    number[present] = np.arange(len(present))
     t0 = time.perf_counter()
-    matrix = fit_adapter(_vectors(P)[keep], number[p_idx[keep]], _vectors(V), number[v_idx], spec.cfg.adapter)
+    fitted = _fit(P, V, present, int(meshes.num_rows), spec.cfg.adapter)
+    if fitted is None:
+        return None
+    matrix, n_probes = fitted
     seconds = time.perf_counter() - t0
     row = {
         "encoder_id": encoder_id,
@@ -144,7 +155,7 @@ def refresh(store: Store, spec, run_id: str, log=print) -> dict | None:
         "view_fingerprint": views.fingerprint,
         "probe_fingerprint": probe.fingerprint,
         "n_models": int(len(present)),
-        "n_probes": int(keep.sum()),
+        "n_probes": n_probes,
         "dim": int(matrix.shape[0]),
         "matrix": matrix.astype("<f4").tobytes(),
         "fit_json": fit_json,
@@ -185,8 +196,8 @@ def for_query(store: Store, encoder_id: str, view_fp: str, probe_fp: str | None,
 def refit_for(tables, adapter: Adapter) -> Adapter | None:
     """The adapter a store holding only ``tables``' meshes would have: fitted as ``adapter`` was, on the
     probes and learned views of those meshes (the open-set split, :mod:`pipeline.evaluate.openset_split`,
-    which takes meshes out of a store's tables). ``None`` when fewer than two models are left."""
-    from pipeline.adapter.fit import FitConfig, fit_adapter
+    which takes meshes out of a store's tables). ``None`` when fewer than two models, or no probe of them, are left."""
+    from pipeline.adapter.fit import FitConfig
     from pipeline.db import connect
 
     fps = tables.onboarding.fingerprints
@@ -201,18 +212,16 @@ def refit_for(tables, adapter: Adapter) -> Adapter | None:
     present = np.unique(np.asarray(V.column("mesh_idx").to_numpy(), np.int64))
     if len(present) < 2:
         return None
-    number = np.full(tables.meshes.num_rows, -1, np.int64)
-    number[present] = np.arange(len(present))
-    p_idx = np.asarray(P.column("mesh_idx").to_numpy(), np.int64)
-    keep = np.isin(p_idx, present)
-    v_idx = np.asarray(V.column("mesh_idx").to_numpy(), np.int64)
     cfg = FitConfig(
         **{k: tuple(v) if isinstance(v, list) else v for k, v in json.loads(adapter.fit_json).items()}
     )
-    matrix = fit_adapter(_vectors(P)[keep], number[p_idx[keep]], _vectors(V), number[v_idx], cfg)
+    fitted = _fit(P, V, present, tables.meshes.num_rows, cfg)
+    if fitted is None:
+        return None
+    matrix, n_probes = fitted
     ids = tables.meshes.column("mesh_id").to_pylist()
     wanted = provenance(key, fps["embed_image:learned_encoder"], fps["probe"], [ids[i] for i in present])
-    return Adapter(matrix, wanted, adapter.run_id, int(len(present)), int(keep.sum()), adapter.fit_json)
+    return Adapter(matrix, wanted, adapter.run_id, int(len(present)), n_probes, adapter.fit_json)
 
 
 def probe_dataset(encoder_id: str) -> str:
