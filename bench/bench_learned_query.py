@@ -7,7 +7,9 @@ then alternates three configurations over the first ``--n`` queries (masks, veri
 the default, the default with the learned ROI embedding run in turn instead of beside the rest
 (``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), descriptor only, and, on a store with a query
 adapter (pipeline/adapter), the default without it (``--no-adapter``). Prints the p50 of the total
-and of the embedding step for each, and the ratios (the numbers that survive a loaded machine).
+and of the embedding step for each, and of the verdict's patch agreement (pipeline/query/patches.py; its
+view cache is cleared before every query, as in a library too large for the top-1 to repeat), and the
+ratios (the numbers that survive a loaded machine).
 ``--torch-threads N`` sets torch's and BLAS's threads as the query CLI and the service do (their default is
 half the cores, 1 on 2 cores); without it, the libraries' own defaults (every core).
 """
@@ -55,18 +57,25 @@ def main() -> int:
         r.query(qs[0].image, qs[0].prompt, mask=qs[0].mask)  # warm
     total = {k: [] for k in rs}
     embed = {k: [] for k in rs}
+    patches = {k: [] for k in rs}
     for _ in range(args.repeats):
         for q in qs:
             for k, (r, overlap) in rs.items():
                 os.environ[OVERLAP_ENV] = overlap
+                if r.ranking.patches is not None:  # the top-1's view tokens as in a large library: uncached
+                    r.ranking.patches.clear()
                 t0 = time.perf_counter()
                 res = r.query(q.image, q.prompt, mask=q.mask)
                 total[k].append(1000 * (time.perf_counter() - t0))
                 embed[k].append(res.timings["embed_ms"])
+                if "patches_ms" in res.timings:
+                    patches[k].append(res.timings["patches_ms"])
     for k in rs:
         print(
             f"{k}: p50 total {statistics.median(total[k]):.1f} ms, "
-            f"p50 embed {statistics.median(embed[k]):.1f} ms, n {len(total[k])}"
+            f"p50 embed {statistics.median(embed[k]):.1f} ms, "
+            + (f"p50 patch agreement {statistics.median(patches[k]):.1f} ms, " if patches[k] else "")
+            + f"n {len(total[k])}"
         )
     p50 = {k: statistics.median(v) for k, v in total.items()}
     print(f"ratio learned / descriptor p50: {p50['learned'] / p50['descriptor']:.2f}")

@@ -11,7 +11,9 @@ fold, :func:`pipeline.evaluate.openset.cross_validate`): the leave-one-object-ou
 answers, pooled and per query file and ROI kind, then the model fitted on all of them at its operating
 point (``--target`` of the correct answers accepted, each query file weighing the same) scored on every
 held-out file, beside the shipped calibration (``pipeline/query/calibration/offline.json``). Printed:
-absent answers rejected / correct answers accepted. Nothing is installed. Results: docs/results.md, 11.
+absent answers rejected / correct answers accepted. ``--install N`` writes the N-th run's model (1-based,
+in the order printed) into that file for ``--variant`` alone, with its provenance under ``fit.refits``;
+the other variants stay as they are. Results: docs/results.md, sections 11 and 12.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ def main() -> int:
     p.add_argument("--features", action="append", default=[], help="a comma-separated feature set")
     p.add_argument("--select", action="store_true", help="also the product's per-fold feature selection")
     p.add_argument("--variant", default="two-stage+verify")
+    p.add_argument("--install", type=int, default=0, help="write the N-th run's model into the shipped file")
     args = p.parse_args()
 
     from pipeline.evaluate.openset import cross_validate, fit, select_features, usable_features
@@ -92,6 +95,7 @@ def main() -> int:
     runs = [(tuple(f.split(",")), False) for f in args.features]
     if args.select:
         runs.append((usable_features(train), True))
+    fitted = []
     for feats, select in runs:
         picked = cross_validate(train, feats, args.target, select=select)
         chosen = select_features(train, feats, args.target) if select else feats
@@ -103,7 +107,48 @@ def main() -> int:
             print(line(f"{src} / {roi}", [e for e in train if (e.source, e.roi) == (src, roi)]))
         print(f"  fitted on all: {','.join(chosen)} (threshold {model.threshold})")
         print("\n".join(held_out_lines(model, held)))
+        fitted.append((model, rates_of(train)))
+    if args.install:
+        path = install(fitted[args.install - 1], args, len(train))
+        print(f"\ninstalled run {args.install} for {args.variant} into {path}")
     return 0
+
+
+def rates_of(examples: list) -> dict:
+    """The out-of-fold rates of ``examples`` as the calibration's provenance records them."""
+    from dataclasses import asdict
+
+    from pipeline.evaluate.openset import rates_at
+
+    return asdict(rates_at(examples))
+
+
+def install(fitted: tuple, args, n: int):
+    """Replace ``args.variant``'s model in the shipped calibration by ``fitted`` (model, out-of-fold
+    rates), recording how it was made."""
+    import dataclasses
+    import datetime
+
+    from pipeline.query.accept import load_calibration, shipped_path
+
+    model, oof = fitted
+    cal = load_calibration("offline")
+    refits = dict(cal.fit.get("refits") or {})
+    refits[args.variant] = {
+        "command": "python bench/openset_refit.py " + " ".join(sys.argv[1:]),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "train": list(args.train),
+        "held_out": list(args.held_out),
+        "masks_only": bool(args.masks_only),
+        "target": args.target,
+        "answers": n,
+        "cv": "leave one object out",
+        "out_of_fold": oof,
+    }
+    new = dataclasses.replace(
+        cal, variants={**cal.variants, args.variant: model}, fit={**cal.fit, "refits": refits}
+    )
+    return new.write(shipped_path("offline"))
 
 
 if __name__ == "__main__":

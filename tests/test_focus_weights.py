@@ -432,3 +432,25 @@ def test_exposure_evens_out_brightness_for_views_and_roi(tiny_dir):
     assert encoder_fingerprint(None, with_exp, "render-fp") != fp
     with pytest.raises(ModelLoadError, match="exposure"):
         create_model("learned_encoder", ModelSpec("dinov2_focus", str(tiny_dir), {"exposure": 300}))
+
+
+def test_roi_patches_come_from_the_same_pass_and_keep_the_object(tiny_dir):
+    from pipeline.models.focus_encoder import LearnedViewEncoder, square_on
+
+    enc = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, roi_margin=0.1, exposure=110, precision="fp32")
+    fill = enc.fill
+    im = Image.new("RGB", (40, 40), fill)
+    im.paste(photo(5, (20, 20)), (0, 0))  # the object fills the top-left quarter
+    emb, patches = enc.encode_roi_patches(im)
+    np.testing.assert_allclose(emb, enc.encode_roi([im])[0], atol=1e-6)  # one pass, the same vector
+    width = enc.dim  # the tiny model's hidden size (cls pooling)
+    assert patches.dtype == np.float16 and patches.shape[1] == width
+    np.testing.assert_allclose(np.linalg.norm(patches.astype(np.float32), axis=1), 1.0, atol=2e-3)
+    grid = 56 // 14
+    assert 0 < len(patches) < grid * grid  # the object's patches only
+    # the view side: the same tokens for the same pixels (no ROI framing on views)
+    view = square_on(im, fill)
+    v = enc.object_patches(view)
+    assert v.shape[1] == width and len(v) <= grid * grid
+    blank = enc.object_patches(Image.new("RGB", (40, 40), fill))
+    assert len(blank) == grid * grid  # nothing off the background: every patch

@@ -85,6 +85,9 @@ def collect(
     from pipeline.query.errors import QueryError
 
     engine = Engine(retriever, str(retriever.store.root))
+    for r in (retriever, reduced):  # record every feature an answer offers, not only the calibration's
+        if getattr(r.ranking, "patches", None) is not None:
+            r.ranking.patches.always = True
     out: list[Example] = []
     items = [(q, src, roi) for q, src in queries for roi in rois if roi == "mask" or q.box or q.mask]
     for q, src, roi in iterate(items, "open-set answers", unit="query", enabled=progress):

@@ -73,6 +73,8 @@ def without_meshes(retriever, mesh_ids) -> object:
         threads=retriever.text_filter.threads,
     )
     r.version = retriever.version
+    if getattr(retriever.ranking, "patches", None) is not None:  # views are keyed by mesh id: share the cache
+        r.ranking.patches = retriever.ranking.patches
     r.recover = False  # a reload would bring the left-out meshes back: fail instead
     return r
 

@@ -155,6 +155,7 @@ class LearnedViewEncoder:
         except (OSError, ValueError) as exc:
             raise ModelLoadError(f"learned view encoder {self.directory}: unreadable config.json ({exc})") from exc
         patch, hidden = int(config.get("patch_size", 14)), int(config.get("hidden_size", 384))
+        self.patch = patch
         self.layer = block_count(layer, int(config.get("num_hidden_layers", 12)))
         self.size = int(size)
         if self.size < patch or self.size % patch:
@@ -214,23 +215,51 @@ class LearnedViewEncoder:
         return np.concatenate(out)
 
     def encode_image(self, images: list[Image.Image]) -> np.ndarray:
-        images = list(images)
+        return self._encode(list(images))[0]
+
+    def _encode(self, images: list[Image.Image], patches: bool = False) -> tuple[np.ndarray, list]:
+        """Embeddings of ``images`` and, with ``patches``, each one's object patch tokens
+        (:meth:`object_patches`, from the same forward pass)."""
         if not images:
-            return np.zeros((0, self.dim), np.float32)
+            return np.zeros((0, self.dim), np.float32), []
         if self.exposure:
             from pipeline.models.exposure import normalise_exposure  # OpenCV: imported when used
 
             images = [normalise_exposure(im, self.exposure, self.fill) for im in images]
-        emb = l2_normalise(pool_tokens(self.tokens(images), self.pooling))
+        tokens = self.tokens(images)
+        emb = l2_normalise(pool_tokens(tokens, self.pooling))
         if self.flip:
             mirrored = [im.transpose(Image.Transpose.FLIP_LEFT_RIGHT) for im in images]
             emb = emb + l2_normalise(pool_tokens(self.tokens(mirrored), self.pooling))
-        return l2_normalise(emb)
+        kept = [self._object_tokens(im, t) for im, t in zip(images, tokens, strict=True)] if patches else []
+        return l2_normalise(emb), kept
+
+    def _object_tokens(self, image: Image.Image, tokens: np.ndarray) -> np.ndarray:
+        from pipeline.query.patches import object_cells
+
+        grid = self.size // self.patch
+        cells = object_cells(square_on(image, self.fill).resize((self.size, self.size)), self.fill, grid)
+        return l2_normalise(np.asarray(tokens[1:][cells], np.float32)).astype(np.float16)
 
     def encode_roi(self, images: list[Image.Image]) -> np.ndarray:
         """Embeddings of query ROIs: each framed by ``roi_margin`` of render gray (the query side only; the
         stored views are embedded as rendered), then as :meth:`encode_image`."""
         return self.encode_image([with_margin(im, self.roi_margin, self.fill) for im in images])
+
+    def encode_roi_patches(self, image: Image.Image) -> tuple[np.ndarray, np.ndarray]:
+        """One ROI's embedding (:meth:`encode_roi`) and its object patch tokens, from one forward pass."""
+        emb, kept = self._encode([with_margin(image, self.roi_margin, self.fill)], patches=True)
+        return emb[0], kept[0]
+
+    def object_patches(self, image: Image.Image) -> np.ndarray:
+        """``(k, hidden)`` float16 L2-normalised tokens of the patches that hold the object (pixels off the
+        background ``fill``; every patch when too few do), of one stored view or ROI as the encoder sees it
+        (exposure evened out, squared, resized)."""
+        return self._encode([image], patches=True)[1][0]
+
+    def object_patches_batch(self, images: list[Image.Image]) -> list[np.ndarray]:
+        """:meth:`object_patches` of several images in one forward pass."""
+        return self._encode(list(images), patches=True)[1]
 
 
 def options_of(options: dict[str, Any]) -> dict[str, Any]:

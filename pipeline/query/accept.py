@@ -35,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.query.patches import PATCH_FEATURES
+
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
 FEATURES = (
     "score",
@@ -48,6 +50,7 @@ FEATURES = (
     "learned_z",
     "score_z",
     "margin_z",
+    *PATCH_FEATURES,
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024

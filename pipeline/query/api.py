@@ -28,6 +28,7 @@ from pipeline.query.library import StoreTables, store_version
 from pipeline.query.models import QueryModels, roles_for
 from pipeline.query.opening import open_state
 from pipeline.query.overlap import beside
+from pipeline.query.patches import PatchMatcher
 from pipeline.query.recover import Gate, recovering, vanished_file
 from pipeline.query.results import QueryEmbedding, QueryResult
 from pipeline.query.roi import Roi
@@ -60,6 +61,8 @@ class Retriever:
         c = self.ranking  # its engines, also as attributes of the Retriever (tests, benchmarks, evaluation)
         self.text_filter, self.reranker, self.learned = c.text_filter, c.reranker, c.learned
         self.verifier, self.handoff = c.verifier, c.handoff
+        if c.learned is not None:  # the verdict's patch agreement encodes the top-1's view when asked
+            c.patches = PatchMatcher(tables.view_image, lambda: self.model("learned_encoder"))
 
     @classmethod
     def open(
@@ -159,7 +162,10 @@ class Retriever:
         learned = None
         if self.learned is not None:  # loaded here, run beside the rest (pipeline/query/overlap.py)
             enc = self.model("learned_encoder")  # an adapter without ROI framing embeds the ROI as a view
-            learned = beside(lambda: getattr(enc, "encode_roi", enc.encode_image)([roi.image])[0])
+            if hasattr(enc, "encode_roi_patches"):  # the vector and the object's patch tokens, one pass
+                learned = beside(lambda: enc.encode_roi_patches(roi.image))
+            else:
+                learned = beside(lambda: (getattr(enc, "encode_roi", enc.encode_image)([roi.image])[0], None))
         try:
             emb = embed_roi(self.strategy, self.model, roi, prompt, self.settings.prompt_weight > 0)
             if self.settings.verify and self.verifier.available:
@@ -169,7 +175,7 @@ class Retriever:
                 learned.exception()  # the side call ends with this query; the first error is the one raised
             raise
         if learned is not None:
-            emb.learned = learned.result()
+            emb.learned, emb.learned_patches = learned.result()
         return emb
 
     @recovering

@@ -176,6 +176,17 @@ class StoreTables:
             rel = self.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
 
+    def view_image(self, mesh_id: str, view_index: int) -> bytes | None:
+        """The PNG bytes of one rendered view (``sql/view_image.sql``; ``None`` when it has none)."""
+        params = {
+            "mesh_id": str(mesh_id),
+            "view_index": int(view_index),
+            "render_fingerprint": self.onboarding.fingerprints["render"],
+        }
+        with self._db_lock:
+            rows = self.con.sql(load_sql("view_image"), params=params).fetchall()
+        return bytes(rows[0][0]) if rows and rows[0][0] is not None else None
+
     def view_poses(self, mesh_ids: list[str]) -> list[dict]:
         """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``
         (``sql/view_poses.sql``; the pose-estimator hand-off, :mod:`pipeline.query.handoff`)."""

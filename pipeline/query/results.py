@@ -22,6 +22,9 @@ class QueryEmbedding:
     learned: np.ndarray | None = (
         None  # float32, the ROI in the learned encoder's space (when the store has it)
     )
+    #: float16 (k, hidden): the learned encoder's tokens of the ROI's object patches (the open-set verdict's
+    #: patch agreement, pipeline.query.patches; None without the learned encoder)
+    learned_patches: np.ndarray | None = None
 
     def describe(self) -> dict:
         return {
@@ -31,6 +34,7 @@ class QueryEmbedding:
             "roi_caption": self.roi_caption,
             "roi_keypoints": None if self.local is None else len(self.local),
             "learned_dim": None if self.learned is None else int(self.learned.shape[-1]),
+            "learned_patches": None if self.learned_patches is None else len(self.learned_patches),
         }
 
 

@@ -9,9 +9,13 @@ scores over the library's cohort, and sets
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
+from pipeline.query.patches import VIEWS as PATCH_VIEWS
+from pipeline.query.patches import top_views
 from pipeline.query.steps.state import RankState
 
 
@@ -47,6 +51,15 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
         learned_cohort,
     )
     variant = variant_of(state.request.mode, verified)
+    model = ctx.calibration.variants.get(variant) if ctx.calibration is not None else None
+    if ctx.patches is not None and len(order) and state.emb.learned is not None and ctx.patches.wanted(model):
+        # patch agreement of the ROI and the top-1's views that the plain learned cosine ranks first
+        t0 = time.perf_counter()
+        mesh = int(state.mesh_idx[int(order[0])])
+        s = ctx.learned.score(state.emb.learned, np.array([mesh]), per_view=True)
+        views = top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
+        feats.update(ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], views))
+        state.timings["patches_ms"] = (time.perf_counter() - t0) * 1000
     threshold = state.request.accept_threshold
     state.verdict = judge(ctx.calibration, feats, variant, threshold, ctx.calibration_mismatch, samples)
     return state

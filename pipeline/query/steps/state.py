@@ -96,6 +96,7 @@ class RankContext:
     handoff: Any = None  # pipeline.query.handoff.HandOff: the candidates' pose-estimator fields (None: none)
     adapter: Any = None  # pipeline.adapter.table.Adapter fitted on this store state (None: none)
     adapter_note: str | None = None  # why the store's adapter is not used (it was fitted on other models)
+    patches: Any = None  # pipeline.query.patches.PatchMatcher of the verdict (None: no learned encoder)
 
     @classmethod
     def from_meshes(cls, meshes, **parts) -> RankContext:

@@ -1,0 +1,145 @@
+"""Patch agreement: does the ROI look like the top-1 model part by part, not only as a whole?
+
+The open-set verdict's scores are whole-image cosines, and an absent object's best match is often a
+look-alike that scores as high as a right answer (a box of another brand, a can of another soup). The
+learned encoder's patch tokens tell more: for each patch of the ROI's object, how close the nearest patch
+of the top-1's best view is. A right model has a counterpart for most parts of the object; a look-alike has
+some and lacks others. Two features (:data:`PATCH_FEATURES`, offered to the calibration's selection),
+each the best over the top-1's :data:`VIEWS` views that the plain learned cosine ranks first:
+
+* ``patch_cover``: the mean over the ROI's object patches of the best cosine to a patch of the view;
+* ``patch_sim``: its symmetric form, the mean of ``patch_cover`` and the same from the view's side.
+
+The view's tokens are computed at query time from the stored view image (one encoder pass, kept in a
+bounded cache per view) rather than stored at onboarding: 256 tokens of 384 values per view would add
+about 2.4 MB per model (12 views, float16) to the store to serve the top-1 of each query only. Measured
+in docs/results.md, section 12.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+
+import numpy as np
+from PIL import Image
+
+#: the features this module adds to an answer (:data:`pipeline.query.accept.FEATURES` lists them)
+PATCH_FEATURES = ("patch_cover", "patch_sim")
+#: a pixel is the object's when a channel differs from the background by more than this (as the encoders)
+TOLERANCE = 12
+#: a patch is the object's when this share of its pixels is
+MIN_COVER = 0.3
+#: with fewer object patches than this, every patch is used (a tiny or blank ROI)
+MIN_PATCHES = 4
+#: the top-1's views compared (those the learned cosine ranks first; one encoder batch): with 2 instead of 1
+#: the patch features separate absent objects' answers better (docs/results.md, section 12)
+VIEWS = 2
+#: views whose patch tokens are kept (LRU)
+CACHE_VIEWS = 512
+
+
+def object_cells(image: Image.Image, fill: tuple[int, int, int], grid: int) -> np.ndarray:
+    """Which cells of a ``grid`` x ``grid`` split of the square ``image`` hold the object (bool, row-major):
+    at least :data:`MIN_COVER` of their pixels off the background ``fill``; all cells when fewer than
+    :data:`MIN_PATCHES` do."""
+    a = np.asarray(image.convert("RGB"), np.int16)
+    side = (min(a.shape[0], a.shape[1]) // grid) * grid
+    if side < grid:
+        return np.ones(grid * grid, bool)
+    off = np.abs(a[:side, :side] - np.asarray(fill, np.int16)).max(axis=2) > TOLERANCE
+    step = side // grid
+    cover = off.reshape(grid, step, grid, step).mean(axis=(1, 3)).reshape(-1)
+    cells = cover >= MIN_COVER
+    return cells if cells.sum() >= MIN_PATCHES else np.ones(grid * grid, bool)
+
+
+def top_views(view_ids: np.ndarray, view_scores: np.ndarray, k: int) -> list[int]:
+    """The ``k`` view indices of one model with the highest finite scores, best first (ids < 0: none)."""
+    ids, sc = np.asarray(view_ids), np.asarray(view_scores, np.float64)
+    ok = (ids >= 0) & np.isfinite(sc)
+    ids, sc = ids[ok], sc[ok]
+    return [int(ids[i]) for i in np.argsort(-sc, kind="stable")[: max(int(k), 0)]]
+
+
+def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str, float | None]:
+    """:data:`PATCH_FEATURES` of the ROI's and the view's object patch tokens (rows, L2-normalised);
+    ``None`` for both when either side has none."""
+    if roi is None or view is None or not len(roi) or not len(view):
+        return dict.fromkeys(PATCH_FEATURES)
+    s = np.asarray(roi, np.float32) @ np.asarray(view, np.float32).T
+    cover = float(s.max(axis=1).mean())
+    back = float(s.max(axis=0).mean())
+    return {"patch_cover": cover, "patch_sim": 0.5 * (cover + back)}
+
+
+class PatchMatcher:
+    """The top-1 view's object patch tokens on demand: ``view_image(mesh_id, view_index)`` gives the stored
+    PNG bytes (``None`` when there is none), ``encoder()`` the learned view encoder (loaded on first use);
+    tokens are cached per view (thread-safe; the encoder runs outside the lock). The verdict computes the
+    features only when its calibration reads them, or always when ``always`` is set (the open-set
+    evaluation, which records every feature an answer offers for the fits)."""
+
+    def __init__(
+        self,
+        view_image: Callable[[str, int], bytes | None],
+        encoder: Callable[[], object],
+        cache_views: int = CACHE_VIEWS,
+    ) -> None:
+        self._view_image, self._encoder = view_image, encoder
+        self._cache: OrderedDict[tuple[str, int], np.ndarray | None] = OrderedDict()
+        self._size = max(int(cache_views), 1)
+        self._lock = threading.Lock()
+        self.always = False
+
+    def wanted(self, model) -> bool:
+        """Whether a verdict by ``model`` (an :class:`pipeline.query.accept.AcceptModel` or ``None``) needs
+        the patch features."""
+        return self.always or bool(model is not None and set(PATCH_FEATURES) & set(model.features))
+
+    def clear(self) -> None:
+        """Forget every cached view (benchmarks of the uncached cost)."""
+        with self._lock:
+            self._cache.clear()
+
+    def view_tokens(self, mesh_id: str, views: list[int]) -> list[np.ndarray | None]:
+        """The object patch tokens of ``views`` of ``mesh_id`` (``None`` for a view without an image);
+        the uncached ones are encoded in one batch."""
+        keys = [(str(mesh_id), int(v)) for v in views]
+        with self._lock:
+            have = {k: self._cache[k] for k in keys if k in self._cache}
+            for k in have:
+                self._cache.move_to_end(k)
+        todo = [k for k in dict.fromkeys(keys) if k not in have]
+        if todo:
+            pngs = {k: self._view_image(*k) for k in todo}
+            images = {}
+            for k, png in pngs.items():
+                if png is not None:
+                    with Image.open(io.BytesIO(png)) as im:
+                        images[k] = im.convert("RGB")
+            got = dict.fromkeys(todo)
+            if images:
+                got.update(zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True))
+            with self._lock:
+                for k, t in got.items():
+                    self._cache[k] = t
+                while len(self._cache) > self._size:
+                    self._cache.popitem(last=False)
+            have.update(got)
+        return [have[k] for k in keys]
+
+    def features(self, roi: np.ndarray | None, mesh_id: str, views: list[int]) -> dict[str, float | None]:
+        """:data:`PATCH_FEATURES` of the ROI's patch tokens against the best of ``views`` of ``mesh_id``
+        (each feature its own best view)."""
+        views = [int(v) for v in views if v is not None and v >= 0]
+        if roi is None or not views:
+            return dict.fromkeys(PATCH_FEATURES)
+        each = [patch_agreement(roi, t) for t in self.view_tokens(mesh_id, views)]
+        out: dict[str, float | None] = {}
+        for f in PATCH_FEATURES:
+            vals = [e[f] for e in each if e[f] is not None]
+            out[f] = max(vals) if vals else None
+        return out

@@ -1,0 +1,184 @@
+"""Patch agreement of the open-set verdict (pipeline.query.patches): object cells, the two features, the
+per-view token cache, and the verdict's features on a real store."""
+
+from __future__ import annotations
+
+import io
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline.query.accept import FEATURES
+from pipeline.query.patches import (
+    PATCH_FEATURES,
+    VIEWS,
+    PatchMatcher,
+    object_cells,
+    patch_agreement,
+    top_views,
+)
+
+GRAY = (205, 205, 205)
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.linalg.norm(x, axis=1, keepdims=True)
+
+
+def test_object_cells_mark_the_patches_off_the_background():
+    im = Image.new("RGB", (56, 56), GRAY)
+    im.paste((200, 30, 30), (0, 0, 28, 28))  # four 14 px cells in the top-left corner
+    im.paste((30, 30, 200), (42, 42, 56, 56))
+    im.paste((30, 200, 30), (14, 28, 17, 31))  # 9 of a cell's 196 pixels: not the object's
+    cells = object_cells(im, GRAY, 4)
+    assert cells.shape == (16,)
+    assert sorted(np.flatnonzero(cells)) == [0, 1, 4, 5, 15]
+    # a faint difference (within the tolerance) is background; fewer than 4 object cells: all of them
+    faint = Image.new("RGB", (56, 56), tuple(c + 5 for c in GRAY))
+    assert object_cells(faint, GRAY, 4).all()
+
+
+def test_patch_agreement_reads_part_by_part_likeness():
+    rng = np.random.default_rng(0)
+    parts = _unit(rng.normal(size=(6, 32)))
+    same = patch_agreement(parts, parts[::-1])
+    assert abs(same["patch_cover"] - 1.0) < 1e-6 and abs(same["patch_sim"] - 1.0) < 1e-6
+    half = patch_agreement(parts, parts[:3])  # the view has a counterpart for half of the ROI's parts
+    assert half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]  # all of the view's parts match
+    other = patch_agreement(parts, _unit(rng.normal(size=(6, 32))))
+    assert other["patch_cover"] < half["patch_cover"]
+    assert patch_agreement(None, parts) == dict.fromkeys(PATCH_FEATURES)
+    assert patch_agreement(parts, parts[:0]) == dict.fromkeys(PATCH_FEATURES)
+    assert set(PATCH_FEATURES) <= set(FEATURES)
+
+
+def test_top_views_are_the_best_scored_views_that_exist():
+    ids = np.array([0, 1, 2, 3, -1])
+    scores = np.array([0.2, 0.9, -np.inf, 0.5, 0.99], np.float32)
+    assert top_views(ids, scores, 2) == [1, 3]
+    assert top_views(ids, scores, 9) == [1, 3, 0]
+    assert top_views(ids[:0], scores[:0], 2) == []
+
+
+class _Encoder:
+    def __init__(self):
+        self.calls = 0
+        self.batches = []
+
+    def object_patches_batch(self, images):
+        self.calls += 1
+        self.batches.append(len(images))
+        return [_unit(np.asarray(im, np.float32).reshape(-1, 3)[:4] + 1.0).astype(np.float16) for im in images]
+
+
+def _png(colour) -> bytes:
+    buf = io.BytesIO()
+    Image.new("RGB", (8, 8), colour).save(buf, "PNG")
+    return buf.getvalue()
+
+
+def test_matcher_encodes_each_view_once_and_bounds_its_cache():
+    enc = _Encoder()
+    asked = []
+
+    def view_image(mesh_id, view_index):
+        asked.append((mesh_id, view_index))
+        return None if mesh_id == "none" else _png((view_index * 20, 10, 10))
+
+    m = PatchMatcher(view_image, lambda: enc, cache_views=3)
+    roi = _unit(np.ones((3, 3), np.float32))
+    a = m.features(roi, "m1", [0])
+    assert a["patch_cover"] is not None and m.features(roi, "m1", [0]) == a
+    assert enc.calls == 1 and asked == [("m1", 0)]
+    both = m.features(roi, "m1", [1, 0])  # view 0 cached, view 1 encoded: one batch of one
+    assert enc.batches == [1, 1] and both["patch_cover"] >= a["patch_cover"]
+    one = m.features(roi, "m1", [1])
+    assert both == {k: max(a[k], one[k]) for k in PATCH_FEATURES}  # each feature its best view
+    m.features(roi, "m1", [2, 3])  # one batch of two; the cache (3 views) drops the oldest, view 0
+    assert enc.batches[-1] == 2
+    m.features(roi, "m1", [0])
+    assert enc.calls == 4
+    assert m.features(roi, "none", [0]) == dict.fromkeys(PATCH_FEATURES)  # a view without an image
+    assert m.features(roi, "m1", []) == dict.fromkeys(PATCH_FEATURES)  # a mesh without views
+    assert m.features(None, "m1", [0]) == dict.fromkeys(PATCH_FEATURES)  # an ROI without tokens
+    # concurrent callers get the same answer
+    out = []
+    threads = [threading.Thread(target=lambda: out.append(m.features(roi, "m2", [3, 4]))) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(out) == 8 and all(o == out[0] for o in out)
+
+
+def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_models):
+    """Onboarded with the offline models: a masked query's verdict carries the patch agreement of its ROI
+    with the top-1's two best views by the learned cosine, computed from the stored PNGs, when asked for
+    (``always``, as the open-set evaluation sets it) and then also in the open-set split; a calibration that
+    reads no patch feature costs no encoder pass."""
+    import shutil
+
+    from conftest import SAMPLE_LIBRARY
+    from onboard_helpers import onboard
+    from query_helpers import render_query_view
+
+    from pipeline.evaluate.openset_split import without_meshes
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.query import Retriever
+
+    lib = tmp_path / "lib"
+    for n in ("005_tomato_soup_can", "006_mustard_bottle", "011_banana"):
+        shutil.copytree(SAMPLE_LIBRARY / n, lib / n)
+    store = tmp_path / "store"
+    onboard(lib, store, models=offline_models, render=RenderConfig(resolution=192))
+    img, mask = render_query_view(next((lib / "006_mustard_bottle").rglob("*.obj")))
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        roi = r.make_roi(img, "the mustard bottle", mask=mask)
+        emb = r.embed(roi, "the mustard bottle")
+        assert emb.learned_patches is not None and emb.learned_patches.dtype == np.float16
+        plain = r.rank(emb, top=3)
+        model = r.ranking.calibration.variants.get(plain.verdict.variant)
+        if not r.ranking.patches.wanted(model):  # the shipped calibration does not read them: not computed
+            assert "patch_cover" not in plain.verdict.features and "patches_ms" not in plain.timings
+        r.ranking.patches.always = True
+        res = r.rank(emb, top=3)
+        best = res.candidates[0]
+        enc = r.model("learned_encoder")
+        mesh = r.ranking.mesh_id.index(best.mesh_id)
+        s = r.learned.score(emb.learned, np.array([mesh]), per_view=True)
+        views = top_views(s.view_ids[0], s.view_scores[0], VIEWS)
+        assert len(views) == VIEWS == 2
+        each = []
+        for v in views:
+            with Image.open(io.BytesIO(r.tables.view_image(best.mesh_id, v))) as view:
+                each.append(patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB"))))
+        want = {k: max(e[k] for e in each) for k in PATCH_FEATURES}
+        got = {k: res.verdict.features[k] for k in PATCH_FEATURES}
+        assert got == pytest.approx({k: round(v, 6) for k, v in want.items()}, abs=1e-6)
+        assert 0.0 < got["patch_cover"] <= 1.0 and "patches_ms" in res.timings
+        assert r.tables.view_image(best.mesh_id, 999) is None
+        sub = without_meshes(r, [best.mesh_id])  # the split answers from its own top-1, with the same cache
+        assert sub.ranking.patches is r.ranking.patches
+        other = sub.rank(emb, top=3)
+        assert other.candidates[0].mesh_id != best.mesh_id
+        assert other.verdict.features["patch_cover"] is not None
+
+
+def test_patch_features_only_when_the_calibration_reads_them():
+    """The encoder pass for the top-1's views runs only for a calibration that reads a patch feature (the
+    shipped default ranking's does), or always when the open-set evaluation asks for every feature."""
+    from pipeline.query.accept import AcceptModel, load_calibration
+
+    def model(*features):
+        n = len(features)
+        return AcceptModel(features, (0.0,) * n, (1.0,) * n, (1.0,) * n, 0.0, 0.5)
+
+    m = PatchMatcher(lambda mesh_id, view: None, lambda: None)
+    assert not m.wanted(None) and not m.wanted(model("score", "score_z"))
+    assert m.wanted(model("score", "patch_sim")) and m.wanted(model("patch_cover"))
+    m.always = True
+    assert m.wanted(None) and m.wanted(model("score"))
+    shipped = load_calibration("offline").variants["two-stage+verify"]
+    assert "patch_sim" in shipped.features and PatchMatcher(lambda *a: None, lambda: None).wanted(shipped)
