@@ -4,8 +4,16 @@ Records, per query: the Python API's full ``Retriever.query`` JSON (timings drop
 (mask) and ``bbox`` (box) ROI of the query, ``Retriever.rank`` over a grid of every mode, fallback unit,
 threshold (default, one nothing passes, one everything passes), fallback k, verification (settings, off, on)
 and prompt weight, with the view-level ranking; plus the evaluation engine's plain ``Ranked`` records. Floats
-are written with ``repr`` (exact), paths of the machine are replaced by tokens, so two captures on the same
-store compare equal only when every ranking, score and JSON field is identical.
+are written with ``repr`` (exact), paths of the machine are replaced by tokens, so two full captures on
+the same store compare equal only when every ranking, score and JSON field is identical.
+
+What a test keeps (:func:`summary`) must also hold on another CPU, where the same code and store give
+floats that differ in the sixth decimal (float32 matrix products summed in another order: seen between an
+Intel Xeon with AMX, where the records were made, and an AMD EPYC, 2026-12-06). So each record is kept
+as a :func:`fingerprint`: the exact digest of everything but its floats (every id, order, count, string,
+field and the place of every float), plus the sums of its floats in chunks of :data:`CHUNK`, compared
+with :data:`VALUE_TOL` per float (:func:`mismatches`). A changed ranking, field or count changes the
+digest; a score moved by more than ``CHUNK * VALUE_TOL`` moves its chunk's sum past the tolerance.
 
 As a tool (the before/after check of a ranking refactor)::
 
@@ -30,6 +38,9 @@ FALLBACK_KS = (1, 10)
 VERIFY = (None, False, True)
 PROMPT_WEIGHTS = (0.0, 1.0)  # on top of the default (None), at the default tau / k / verification
 FULL = 1_000_000
+#: floats per summed chunk of a fingerprint, and the drift allowed per float (cross-CPU drift: about 3e-6)
+CHUNK = 64
+VALUE_TOL = 1e-5
 #: per-candidate fields of the pose-estimator hand-off (the ``handoff`` step), left out of the records
 HANDOFF_FIELDS = ("units_guess", "units_from", "scale_to_metres", "extent_m", "best_view_pose", "intrinsics")
 
@@ -146,21 +157,70 @@ def digest(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()
 
 
+def split_floats(obj, out: list[float] | None = None):
+    """``obj`` with every finite float replaced by a placeholder, and those floats in order."""
+    out = [] if out is None else out
+    if isinstance(obj, dict):
+        return {k: split_floats(obj[k], out)[0] for k in sorted(obj, key=str)}, out
+    if isinstance(obj, (list, tuple)):
+        return [split_floats(v, out)[0] for v in obj], out
+    if isinstance(obj, float):
+        if obj != obj or obj in (float("inf"), float("-inf")):
+            return repr(obj), out  # NaN and infinities are part of the skeleton, exactly
+        out.append(obj)
+        return "<float>", out
+    return obj, out
+
+
+def fingerprint(obj) -> dict:
+    """The exact digest of ``obj`` without its floats, and its floats' sums in chunks of :data:`CHUNK`."""
+    skeleton, xs = split_floats(obj)
+    a = np.asarray(xs, np.float64)
+    sums = [round(float(a[i : i + CHUNK].sum()), 6) for i in range(0, len(a), CHUNK)]
+    return {"digest": digest(skeleton), "floats": len(xs), "sums": sums}
+
+
 def summary(golden: dict, light: bool = False) -> dict:
-    """What a test file keeps: per query one digest of its query JSON and one per ROI of every ranking row
-    (``light``: of the light grid's rows only), plus the readable default ranking."""
+    """What a test file keeps: per query a :func:`fingerprint` of its query JSON and one per ROI of every
+    ranking row (``light``: of the light grid's rows only), plus the readable default ranking."""
     out = {}
     for qid, rec in golden.items():
         cands = rec["query"]["candidates"]
         out[qid] = {
-            "query_digest": digest(rec["query"]),
+            "query": fingerprint(rec["query"]),
             "best": [c["mesh_id"] for c in cands],
             "scores": [c["score"] if c["score"] is not None else c["image_score"] for c in cands],
         }
         for roi in ("segm",) if light else ("segm", "bbox"):
             if roi in rec:
-                out[qid][roi] = digest([r for r in rec[roi] if not light or is_light(r)])
+                out[qid][roi] = fingerprint([r for r in rec[roi] if not light or is_light(r)])
     return out
+
+
+def mismatches(old: dict, new: dict) -> list[str]:
+    """Where two summaries of one query differ beyond the cross-CPU drift (empty: they agree)."""
+    bad = [f"/{k}: only in {'new' if k in new else 'old'}" for k in sorted(set(old) ^ set(new))]
+    for k in sorted(set(old) & set(new)):
+        a, b = old[k], new[k]
+        if k == "scores":
+            if len(a) != len(b) or any(abs(x - y) > VALUE_TOL for x, y in zip(a, b, strict=False)):
+                bad.append(f"/scores: {a} != {b}")
+        elif isinstance(a, dict) and "sums" in a:
+            if a["digest"] != b.get("digest") or a["floats"] != b.get("floats"):
+                bad.append(
+                    f"/{k}: ranking, field or count changed (digest {a['digest'][:12]} != {b.get('digest', '')[:12]})"
+                )
+                continue
+            tol = CHUNK * VALUE_TOL
+            moved = [i for i, (x, y) in enumerate(zip(a["sums"], b["sums"], strict=True)) if abs(x - y) > tol]
+            if moved:
+                i = moved[0]
+                bad.append(
+                    f"/{k}: floats moved in {len(moved)} chunk(s), first #{i}: {a['sums'][i]} != {b['sums'][i]}"
+                )
+        elif a != b:
+            bad.append(f"/{k}: {str(a)[:120]} != {str(b)[:120]}")
+    return bad
 
 
 def differences(old: dict, new: dict, limit: int = 20) -> list[str]:

@@ -83,21 +83,21 @@ def test_matcher_encodes_each_view_once_and_bounds_its_cache():
     enc = _Encoder()
     asked = []
 
-    def view_image(mesh_id, view_index):
-        asked.append((mesh_id, view_index))
-        return None if mesh_id == "none" else _png((view_index * 20, 10, 10))
+    def view_images(mesh_id, view_indices):
+        asked.append((mesh_id, list(view_indices)))
+        return {} if mesh_id == "none" else {v: _png((v * 20, 10, 10)) for v in view_indices}
 
-    m = PatchMatcher(view_image, lambda: enc, cache_views=3)
+    m = PatchMatcher(view_images, lambda: enc, cache_views=3)
     roi = _unit(np.ones((3, 3), np.float32))
     a = m.features(roi, "m1", [0])
     assert a["patch_cover"] is not None and m.features(roi, "m1", [0]) == a
-    assert enc.calls == 1 and asked == [("m1", 0)]
+    assert enc.calls == 1 and asked == [("m1", [0])]
     both = m.features(roi, "m1", [1, 0])  # view 0 cached, view 1 encoded: one batch of one
     assert enc.batches == [1, 1] and both["patch_cover"] >= a["patch_cover"]
     one = m.features(roi, "m1", [1])
     assert both == {k: max(a[k], one[k]) for k in PATCH_FEATURES}  # each feature its best view
     m.features(roi, "m1", [2, 3])  # one batch of two; the cache (3 views) drops the oldest, view 0
-    assert enc.batches[-1] == 2
+    assert enc.batches[-1] == 2 and asked[-1] == ("m1", [2, 3])  # one store read for both
     m.features(roi, "m1", [0])
     assert enc.calls == 4
     assert m.features(roi, "none", [0]) == dict.fromkeys(PATCH_FEATURES)  # a view without an image
@@ -152,13 +152,14 @@ def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_
         assert len(views) == VIEWS == 2
         each = []
         for v in views:
-            with Image.open(io.BytesIO(r.tables.view_image(best.mesh_id, v))) as view:
+            with Image.open(io.BytesIO(r.tables.view_images(best.mesh_id, [v])[v])) as view:
                 each.append(patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB"))))
         want = {k: max(e[k] for e in each) for k in PATCH_FEATURES}
         got = {k: res.verdict.features[k] for k in PATCH_FEATURES}
         assert got == pytest.approx({k: round(v, 6) for k, v in want.items()}, abs=1e-6)
         assert 0.0 < got["patch_cover"] <= 1.0 and "patches_ms" in res.timings
-        assert r.tables.view_image(best.mesh_id, 999) is None
+        assert r.tables.view_images(best.mesh_id, [999]) == {}
+        assert sorted(r.tables.view_images(best.mesh_id, views)) == sorted(views)
         sub = without_meshes(r, [best.mesh_id])  # the split answers from its own top-1, with the same cache
         assert sub.ranking.patches is r.ranking.patches
         other = sub.rank(emb, top=3)
@@ -175,10 +176,10 @@ def test_patch_features_only_when_the_calibration_reads_them():
         n = len(features)
         return AcceptModel(features, (0.0,) * n, (1.0,) * n, (1.0,) * n, 0.0, 0.5)
 
-    m = PatchMatcher(lambda mesh_id, view: None, lambda: None)
+    m = PatchMatcher(lambda mesh_id, views: {}, lambda: None)
     assert not m.wanted(None) and not m.wanted(model("score", "score_z"))
     assert m.wanted(model("score", "patch_sim")) and m.wanted(model("patch_cover"))
     m.always = True
     assert m.wanted(None) and m.wanted(model("score"))
     shipped = load_calibration("offline").variants["two-stage+verify"]
-    assert "patch_sim" in shipped.features and PatchMatcher(lambda *a: None, lambda: None).wanted(shipped)
+    assert "patch_sim" in shipped.features and PatchMatcher(lambda *a: {}, lambda: None).wanted(shipped)

@@ -176,16 +176,17 @@ class StoreTables:
             rel = self.con.sql(load_sql("candidate_views"), params=params)
             return rel.to_arrow_table().to_pylist()
 
-    def view_image(self, mesh_id: str, view_index: int) -> bytes | None:
-        """The PNG bytes of one rendered view (``sql/view_image.sql``; ``None`` when it has none)."""
+    def view_images(self, mesh_id: str, view_indices: list[int]) -> dict[int, bytes]:
+        """The PNG bytes of some rendered views of one model, by view index (``sql/view_images.sql``;
+        views it has no image of are left out)."""
         params = {
             "mesh_id": str(mesh_id),
-            "view_index": int(view_index),
+            "view_indices": [int(v) for v in view_indices],
             "render_fingerprint": self.onboarding.fingerprints["render"],
         }
         with self._db_lock:
-            rows = self.con.sql(load_sql("view_image"), params=params).fetchall()
-        return bytes(rows[0][0]) if rows and rows[0][0] is not None else None
+            rows = self.con.sql(load_sql("view_images"), params=params).fetchall()
+        return {int(v): bytes(png) for v, png in rows if png is not None}
 
     def view_poses(self, mesh_ids: list[str]) -> list[dict]:
         """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``

@@ -76,19 +76,19 @@ def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str
 
 
 class PatchMatcher:
-    """The top-1 view's object patch tokens on demand: ``view_image(mesh_id, view_index)`` gives the stored
-    PNG bytes (``None`` when there is none), ``encoder()`` the learned view encoder (loaded on first use);
+    """The top-1 views' object patch tokens on demand: ``view_images(mesh_id, view_indices)`` gives the
+    stored PNG bytes by view index (one store read; views without an image left out), ``encoder()`` the learned view encoder (loaded on first use);
     tokens are cached per view (thread-safe; the encoder runs outside the lock). The verdict computes the
     features only when its calibration reads them, or always when ``always`` is set (the open-set
     evaluation, which records every feature an answer offers for the fits)."""
 
     def __init__(
         self,
-        view_image: Callable[[str, int], bytes | None],
+        view_images: Callable[[str, list[int]], dict[int, bytes]],
         encoder: Callable[[], object],
         cache_views: int = CACHE_VIEWS,
     ) -> None:
-        self._view_image, self._encoder = view_image, encoder
+        self._view_images, self._encoder = view_images, encoder
         self._cache: OrderedDict[tuple[str, int], np.ndarray | None] = OrderedDict()
         self._size = max(int(cache_views), 1)
         self._lock = threading.Lock()
@@ -114,7 +114,8 @@ class PatchMatcher:
                 self._cache.move_to_end(k)
         todo = [k for k in dict.fromkeys(keys) if k not in have]
         if todo:
-            pngs = {k: self._view_image(*k) for k in todo}
+            got_png = self._view_images(todo[0][0], [v for _, v in todo])  # one model per call
+            pngs = {k: got_png.get(k[1]) for k in todo}
             images = {}
             for k, png in pngs.items():
                 if png is not None:
