@@ -36,12 +36,22 @@ def foreground_mask(a: np.ndarray, fill: tuple[int, int, int]) -> np.ndarray:
     return off > FOREGROUND_TOLERANCE
 
 
+def luminance(pixels: np.ndarray) -> np.ndarray:
+    """Rec. 601 luma (float32) of an ...x3 array of RGB values.
+
+    Element-wise multiplies and adds rather than a matrix product: a BLAS product's kernel (and so its last
+    bit) differs between CPUs, and a median one bit either side of a level can move the scaled levels by one
+    wherever the scale lands on an exact boundary; these ufuncs round the same everywhere."""
+    p = pixels.astype(np.float32, copy=False)
+    return p[..., 0] * LUMA[0] + p[..., 1] * LUMA[1] + p[..., 2] * LUMA[2]
+
+
 def _foreground(a: np.ndarray, fill: tuple[int, int, int]) -> tuple[np.ndarray, float] | None:
     """The foreground mask of RGB array ``a`` and its median luminance; ``None`` with too little of it."""
     fg = foreground_mask(a, fill)
     if int(np.count_nonzero(fg)) < MIN_FOREGROUND:
         return None
-    return fg, float(np.median(a[fg].astype(np.float32) @ LUMA))
+    return fg, float(np.median(luminance(a[fg])))
 
 
 def foreground_luminance(image: Image.Image, fill: tuple[int, int, int]) -> float | None:
