@@ -45,10 +45,13 @@ def test_patch_agreement_reads_part_by_part_likeness():
     parts = _unit(rng.normal(size=(6, 32)))
     same = patch_agreement(parts, parts[::-1])
     assert abs(same["patch_cover"] - 1.0) < 1e-6 and abs(same["patch_sim"] - 1.0) < 1e-6
+    assert same["patch_mnn"] == 1.0 and abs(same["patch_low"] - 1.0) < 1e-6
     half = patch_agreement(parts, parts[:3])  # the view has a counterpart for half of the ROI's parts
     assert half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]  # all of the view's parts match
+    assert half["patch_mnn"] == 0.5  # one to one: the three shared parts, not the other three
+    assert half["patch_low"] < 0.5 < half["patch_cover"]  # the unmatched parts, which the mean dilutes
     other = patch_agreement(parts, _unit(rng.normal(size=(6, 32))))
-    assert other["patch_cover"] < half["patch_cover"]
+    assert other["patch_cover"] < half["patch_cover"] and other["patch_low"] < half["patch_cover"]
     assert patch_agreement(None, parts) == dict.fromkeys(PATCH_FEATURES)
     assert patch_agreement(parts, parts[:0]) == dict.fromkeys(PATCH_FEATURES)
     assert set(PATCH_FEATURES) <= set(FEATURES)

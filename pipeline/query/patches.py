@@ -8,7 +8,12 @@ some and lacks others. Two features (:data:`PATCH_FEATURES`, offered to the cali
 each the best over the top-1's :data:`VIEWS` views that the plain learned cosine ranks first:
 
 * ``patch_cover``: the mean over the ROI's object patches of the best cosine to a patch of the view;
-* ``patch_sim``: its symmetric form, the mean of ``patch_cover`` and the same from the view's side.
+* ``patch_sim``: its symmetric form, the mean of ``patch_cover`` and the same from the view's side;
+* ``patch_mnn``: the share of the ROI's object patches that are mutual nearest neighbours with a patch of
+  the view (each the other's closest): a one-to-one correspondence, which a look-alike's few shared parts
+  cannot give to every patch;
+* ``patch_low``: the lower quartile of the ROI patches' best cosines, the parts the view matches worst
+  (a look-alike lacks some parts, which the mean dilutes).
 
 The view's tokens are computed at query time from the stored view image (one encoder pass, kept in a
 bounded cache per view) rather than stored at onboarding: 256 tokens of 384 values per view would add
@@ -27,7 +32,9 @@ import numpy as np
 from PIL import Image
 
 #: the features this module adds to an answer (:data:`pipeline.query.accept.FEATURES` lists them)
-PATCH_FEATURES = ("patch_cover", "patch_sim")
+PATCH_FEATURES = ("patch_cover", "patch_sim", "patch_mnn", "patch_low")
+#: the quantile of the ROI patches' best cosines that ``patch_low`` reads
+LOW_QUANTILE = 0.25
 #: a pixel is the object's when a channel differs from the background by more than this (as the encoders)
 TOLERANCE = 12
 #: a patch is the object's when this share of its pixels is
@@ -70,9 +77,17 @@ def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str
     if roi is None or view is None or not len(roi) or not len(view):
         return dict.fromkeys(PATCH_FEATURES)
     s = np.asarray(roi, np.float32) @ np.asarray(view, np.float32).T
-    cover = float(s.max(axis=1).mean())
+    best = s.max(axis=1)
+    cover = float(best.mean())
     back = float(s.max(axis=0).mean())
-    return {"patch_cover": cover, "patch_sim": 0.5 * (cover + back)}
+    nearest = s.argmax(axis=1)
+    mutual = s.argmax(axis=0)[nearest] == np.arange(len(s))
+    return {
+        "patch_cover": cover,
+        "patch_sim": 0.5 * (cover + back),
+        "patch_mnn": float(mutual.mean()),
+        "patch_low": float(np.quantile(best, LOW_QUANTILE)),
+    }
 
 
 class PatchMatcher:
