@@ -4,7 +4,7 @@ The open-set verdict's scores are whole-image cosines, and an absent object's be
 look-alike that scores as high as a right answer (a box of another brand, a can of another soup). The
 learned encoder's patch tokens tell more: for each patch of the ROI's object, how close the nearest patch
 of the top-1's best view is. A right model has a counterpart for most parts of the object; a look-alike has
-some and lacks others. Two features (:data:`PATCH_FEATURES`, offered to the calibration's selection),
+some and lacks others. Four features (:data:`PATCH_FEATURES`, offered to the calibration's selection),
 each the best over the top-1's :data:`VIEWS` views that the plain learned cosine ranks first:
 
 * ``patch_cover``: the mean over the ROI's object patches of the best cosine to a patch of the view;
@@ -77,11 +77,12 @@ def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str
     if roi is None or view is None or not len(roi) or not len(view):
         return dict.fromkeys(PATCH_FEATURES)
     s = np.asarray(roi, np.float32) @ np.asarray(view, np.float32).T
-    best = s.max(axis=1)
+    rows, cols = np.arange(s.shape[0]), np.arange(s.shape[1])
+    nearest, nearest_back = s.argmax(axis=1), s.argmax(axis=0)  # each side's closest patch, found once
+    best = s[rows, nearest]
     cover = float(best.mean())
-    back = float(s.max(axis=0).mean())
-    nearest = s.argmax(axis=1)
-    mutual = s.argmax(axis=0)[nearest] == np.arange(len(s))
+    back = float(s[nearest_back, cols].mean())
+    mutual = nearest_back[nearest] == rows
     return {
         "patch_cover": cover,
         "patch_sim": 0.5 * (cover + back),
