@@ -28,6 +28,7 @@ from pipeline.query.accept import (
     Calibration,
     CalibrationError,
     answer_features,
+    channel_lead,
     cohort_indices,
     cohort_stats,
     judge,
@@ -98,6 +99,20 @@ def test_score_z_and_margin_z_are_in_stds_of_every_candidates_key():
     assert f["margin_z"] == pytest.approx(0.15 / std, rel=1e-4)
     two = ranking_features(np.array([1, 0]), keys[:2], np.array([-1, -1]), None, False)
     assert two["score_z"] is None and two["margin_z"] is None  # fewer than 3 keys: no spread
+
+
+def test_channel_leads_are_signed_and_read_each_channel_apart():
+    keys = np.array([0.2, 0.9, 0.75], np.float32)  # the fused order puts candidate 1 first
+    inl = np.array([-1, -1, -1])
+    image = np.array([0.5, 0.7, 0.8], np.float32)  # the descriptor prefers candidate 2
+    learned = np.array([0.1, 0.6, 0.3], np.float32)  # the learned encoder agrees with the fused order
+    f = ranking_features(np.array([1, 2, 0]), keys, inl, None, False, image, None, learned, None)
+    assert f["image_lead"] == pytest.approx(-0.1) and f["learned_lead"] == pytest.approx(0.3)
+    assert ranking_features(np.array([1, 2, 0]), keys, inl, None, False)["learned_lead"] is None  # not fused
+    assert channel_lead(np.array([0.4, -np.inf]), 0) is None  # no other finite score
+    assert channel_lead(np.array([np.nan, 0.2]), 0) is None  # the top-1 has none itself
+    assert channel_lead(np.array([0.4, -np.inf, 0.1]), 0) == pytest.approx(0.3)
+    assert answer_features([], None, None, False)["image_lead"] is None
 
 
 def test_logistic_confidence_is_the_formula():

@@ -50,6 +50,8 @@ FEATURES = (
     "learned_z",
     "score_z",
     "margin_z",
+    "image_lead",
+    "learned_lead",
     *PATCH_FEATURES,
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
@@ -146,6 +148,8 @@ def answer_features(
         "learned_z": _z(learned, learned_cohort),
         "score_z": _z(s1, key_stats),
         "margin_z": None if key_stats is None or not key_stats[1] > 0 else margin / key_stats[1],
+        "image_lead": None,
+        "learned_lead": None,
     }
 
 
@@ -380,9 +384,27 @@ def ranking_features(
     img = None if image is None else float(image[top])
     lrn = None if learned is None else float(learned[top])
     keys2 = [float(keys[int(j)]) for j in order[:2]]
-    return answer_features(
+    out = answer_features(
         keys2, inl, t, used_fallback, best, img, cohort, lrn, learned_cohort, cohort_stats(keys)
     )
+    out["image_lead"], out["learned_lead"] = channel_lead(image, top), channel_lead(learned, top)
+    return out
+
+
+def channel_lead(scores: np.ndarray | None, top: int) -> float | None:
+    """How far the top-1 (position ``top``) leads every other candidate in one channel's ``scores``
+    (negative: another candidate scores higher there; ``None`` without two finite scores). The fused
+    ranking can crown a compromise that no single channel puts first, as an absent object's look-alikes
+    split the channels; a right model usually leads in each."""
+    if scores is None or not 0 <= top < len(scores):
+        return None
+    s = np.asarray(scores, np.float64)
+    own = s[top]
+    rest = np.delete(s, top)
+    rest = rest[np.isfinite(rest)]
+    if not math.isfinite(own) or not len(rest):
+        return None
+    return float(own - rest.max())
 
 
 def cohort_indices(n_meshes: int, size: int = COHORT_SIZE) -> np.ndarray:
