@@ -3,9 +3,11 @@
     python bench/bench_learned_query.py --store STORE --queries Q.jsonl [--n 6] [--repeats 2] [--torch-threads N]
 
 Opens two Retrievers on the same store (the default, and ``--model learned_encoder=none``), warms both,
-then alternates three configurations over the first ``--n`` queries (masks, verification on by default):
+then alternates its configurations over the first ``--n`` queries (masks, verification on by default):
 the default, the default with the learned ROI embedding run in turn instead of beside the rest
-(``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), descriptor only, and, on a store with a query
+(``OSCAR_OVERLAP_EMBED=0``, pipeline/query/overlap.py), descriptor only, the default with every patch
+feature computed, the runner-up's patch agreement included (what a calibration reading ``patch_lead``
+costs), and, on a store with a query
 adapter (pipeline/adapter), the default without it (``--no-adapter``). Prints the p50 of the total
 and of the embedding step for each, and of the verdict's patch agreement (pipeline/query/patches.py; its
 view cache is cleared before every query, as in a library too large for the top-1 to repeat), and the
@@ -51,6 +53,10 @@ def main() -> int:
         "learned, in turn": (learned, "0"),
         "descriptor": (Retriever.open(args.store, model_overrides={"learned_encoder": "none"}), "1"),
     }
+    lead = Retriever.open(args.store)  # every patch feature, the runner-up's lead (LEAD_FEATURES) included
+    if lead.ranking.patches is not None:
+        lead.ranking.patches.always = True
+        rs["learned, runner-up patches"] = (lead, "1")
     if learned.tables.adapter is not None:
         rs["learned, no adapter"] = (Retriever.open(args.store, settings_changes={"adapter": False}), "1")
     for r, _ in rs.values():
@@ -80,6 +86,8 @@ def main() -> int:
     p50 = {k: statistics.median(v) for k, v in total.items()}
     print(f"ratio learned / descriptor p50: {p50['learned'] / p50['descriptor']:.2f}")
     print(f"ratio learned / learned in turn p50: {p50['learned'] / p50['learned, in turn']:.2f}")
+    if "learned, runner-up patches" in p50:
+        print(f"ratio learned with the runner-up's patches / learned p50: {p50['learned, runner-up patches'] / p50['learned']:.2f}")
     if "learned, no adapter" in p50:
         print(f"ratio learned / learned without the adapter p50: {p50['learned'] / p50['learned, no adapter']:.2f}")
     for r in {id(r): r for r, _ in rs.values()}.values():

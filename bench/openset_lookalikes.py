@@ -12,7 +12,6 @@ present objects whose right answers were refused. Diagnostics for docs/results.m
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -26,12 +25,13 @@ sys.path.insert(0, str(REPO))
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--store", required=True, help="the store the answers were made on (for model names)")
-    p.add_argument("--examples", action="append", required=True)
+    p.add_argument("--examples", action="extend", nargs="+", required=True, help="one or more answer files")
     p.add_argument("--variant", default="two-stage+verify")
     p.add_argument("--roi", default="mask")
     args = p.parse_args()
 
     from pipeline.evaluate.library import read_store_meshes
+    from pipeline.evaluate.openset import load_examples
     from pipeline.query.accept import load_calibration
 
     names = {m.mesh_id: m.name for m in read_store_meshes(args.store)}
@@ -39,19 +39,15 @@ def main() -> int:
     absent: dict[str, list[tuple[str, float]]] = defaultdict(list)
     n_absent: dict[str, int] = defaultdict(int)
     refused: dict[str, list[bool]] = defaultdict(list)
-    for path in args.examples:
-        for line in Path(path).read_text().splitlines():
-            e = json.loads(line)
-            if e["variant"] != args.variant or e["roi"] != args.roi:
-                continue
-            x = np.array([[e["features"].get(f) for f in model.features]], np.float64)
-            conf = float(model.predict(x)[0])
-            if e["library"] != "full":
-                n_absent[e["group"]] += 1
-                if conf >= model.threshold:
-                    absent[e["group"]].append((names.get(e["top1"], e["top1"][:8]), conf))
-            elif e["correct"]:
-                refused[e["group"]].append(conf < model.threshold)
+    for e in load_examples(args.examples, args.variant, (args.roi,)):
+        x = np.array([[e.features.get(f) for f in model.features]], np.float64)
+        conf = float(model.predict(x)[0])
+        if e.library != "full":
+            n_absent[e.group] += 1
+            if conf >= model.threshold:
+                absent[e.group].append((names.get(e.top1, (e.top1 or "")[:8]), conf))
+        elif e.correct:
+            refused[e.group].append(conf < model.threshold)
     print(f"threshold {model.threshold}; absent object: accepted / answers, accepted as (confidence)")
     for g in sorted(n_absent):
         got = ", ".join(f"{n} ({c:.2f})" for n, c in sorted(absent[g], key=lambda t: -t[1]))

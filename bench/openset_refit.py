@@ -19,7 +19,6 @@ the other variants stay as they are. Results: docs/results.md, sections 11 and 1
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -32,20 +31,9 @@ sys.path.insert(0, str(REPO))
 def load(paths: list[str], variant: str, masks_only: bool, together: set[str]) -> list:
     """The examples of ``variant`` in ``paths`` (only mask ROIs with ``masks_only``); the sources in
     ``together`` share one weight group."""
-    from pipeline.evaluate.openset import Example
-    from pipeline.query.accept import FEATURES
+    from pipeline.evaluate.openset import load_examples
 
-    out = []
-    for p in paths:
-        for line in Path(p).read_text().splitlines():
-            e = Example(**json.loads(line))
-            if e.variant != variant or (masks_only and e.roi != "mask"):
-                continue
-            e.features = {k: v for k, v in e.features.items() if k in FEATURES}
-            if e.source in together:
-                e.weight_group = "+".join(sorted(together))
-            out.append(e)
-    return out
+    return load_examples(paths, variant, ("mask",) if masks_only else None, together)
 
 
 def pct(d: dict) -> str:
@@ -72,8 +60,8 @@ def held_out_lines(model, held: dict[str, list]) -> list[str]:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--train", action="append", required=True)
-    p.add_argument("--held-out", action="append", default=[])
+    p.add_argument("--train", action="extend", nargs="+", required=True, help="one or more answer files")
+    p.add_argument("--held-out", action="extend", nargs="+", default=[], help="one or more answer files")
     p.add_argument("--masks-only", action="store_true")
     p.add_argument("--weigh-together", default="ycb_photos,bbq_sauce")
     p.add_argument("--target", type=float, default=0.97)

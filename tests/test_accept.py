@@ -443,3 +443,23 @@ def test_calibration_is_tied_to_the_fusion_weights():
     assert model_identities(prof, store, False, shipped)["fusion"] is None  # not fused: no weights apply
     old = Calibration("offline", {k: v for k, v in ids.items() if k != "fusion"}, cal.variants, {})
     assert old.mismatch(model_identities(prof, store, True, replace(shipped, fuse_desc=0.3))) is None
+
+
+def test_load_examples_reads_what_collect_writes(tmp_path):
+    """The answers' JSON lines read back as Examples: filtered by variant and ROI kind, features no longer
+    offered dropped, the sources weighed together sharing one group; blank lines skipped."""
+    from pipeline.evaluate.openset import Example, load_examples
+
+    def ex(i, roi, variant, source):
+        feats = {"score": 0.5 + i / 10, "retired_feature": 1.0}
+        return Example(f"q{i}", "g", source, roi, "full", variant, feats, bool(i % 2), "m1")
+
+    rows = [ex(0, "mask", "two-stage+verify", "a"), ex(1, "box", "two-stage+verify", "b"),
+            ex(2, "mask", "two-stage", "a"), ex(3, "mask", "two-stage+verify", "c")]  # fmt: skip
+    path = tmp_path / "examples.jsonl"
+    path.write_text("\n".join(json.dumps(e.to_json()) for e in rows) + "\n\n", encoding="utf-8")
+    got = load_examples([path], "two-stage+verify", ("mask",), {"a", "b"})
+    assert [e.query_id for e in got] == ["q0", "q3"]
+    assert got[0].features == {"score": 0.5} and got[0].weight_group == "a+b" and got[1].weight_group is None
+    assert got[1].correct and got[1].top1 == "m1"
+    assert [e.query_id for e in load_examples([path, path])] == ["q0", "q1", "q2", "q3"] * 2

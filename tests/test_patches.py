@@ -1,5 +1,5 @@
 """Patch agreement of the open-set verdict (pipeline.query.patches): object cells, the two features, the
-per-view token cache, and the verdict's features on a real store."""
+per-view token cache, the runner-up lead, and the verdict's features on a real store."""
 
 from __future__ import annotations
 
@@ -12,11 +12,13 @@ from PIL import Image
 
 from pipeline.query.accept import FEATURES
 from pipeline.query.patches import (
+    LEAD_FEATURES,
     PATCH_FEATURES,
     VIEWS,
     PatchMatcher,
     object_cells,
     patch_agreement,
+    runner_up_lead,
     top_views,
 )
 
@@ -47,7 +49,9 @@ def test_patch_agreement_reads_part_by_part_likeness():
     assert abs(same["patch_cover"] - 1.0) < 1e-6 and abs(same["patch_sim"] - 1.0) < 1e-6
     assert same["patch_mnn"] == 1.0 and abs(same["patch_low"] - 1.0) < 1e-6
     half = patch_agreement(parts, parts[:3])  # the view has a counterpart for half of the ROI's parts
-    assert half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]  # all of the view's parts match
+    assert (
+        half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]
+    )  # all of the view's parts match
     assert half["patch_mnn"] == 0.5  # one to one: the three shared parts, not the other three
     assert half["patch_low"] < 0.5 < half["patch_cover"]  # the unmatched parts, which the mean dilutes
     other = patch_agreement(parts, _unit(rng.normal(size=(6, 32))))
@@ -73,7 +77,9 @@ class _Encoder:
     def object_patches_batch(self, images):
         self.calls += 1
         self.batches.append(len(images))
-        return [_unit(np.asarray(im, np.float32).reshape(-1, 3)[:4] + 1.0).astype(np.float16) for im in images]
+        return [
+            _unit(np.asarray(im, np.float32).reshape(-1, 3)[:4] + 1.0).astype(np.float16) for im in images
+        ]
 
 
 def _png(colour) -> bytes:
@@ -161,6 +167,18 @@ def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_
         got = {k: res.verdict.features[k] for k in PATCH_FEATURES}
         assert got == pytest.approx({k: round(v, 6) for k, v in want.items()}, abs=1e-6)
         assert 0.0 < got["patch_cover"] <= 1.0 and "patches_ms" in res.timings
+        second = res.candidates[1]  # the runner-up's patch agreement, from its own best views
+        mesh2 = r.ranking.mesh_id.index(second.mesh_id)
+        s2 = r.learned.score(emb.learned, np.array([mesh2]), per_view=True)
+        sims = []
+        for v in top_views(s2.view_ids[0], s2.view_scores[0], VIEWS):
+            with Image.open(io.BytesIO(r.tables.view_images(second.mesh_id, [v])[v])) as view:
+                sims.append(
+                    patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB")))["patch_sim"]
+                )
+        assert res.verdict.features["patch_second"] == pytest.approx(round(max(sims), 6), abs=1e-6)
+        lead = res.verdict.features["patch_lead"]
+        assert lead == pytest.approx(round(want["patch_sim"] - max(sims), 6), abs=1e-6)
         assert r.tables.view_images(best.mesh_id, [999]) == {}
         assert sorted(r.tables.view_images(best.mesh_id, views)) == sorted(views)
         sub = without_meshes(r, [best.mesh_id])  # the split answers from its own top-1, with the same cache
@@ -182,7 +200,24 @@ def test_patch_features_only_when_the_calibration_reads_them():
     m = PatchMatcher(lambda mesh_id, views: {}, lambda: None)
     assert not m.wanted(None) and not m.wanted(model("score", "score_z"))
     assert m.wanted(model("score", "patch_sim")) and m.wanted(model("patch_cover"))
+    assert not m.wanted_runner_up(model("score", "patch_sim")) and not m.wanted_runner_up(None)
+    assert m.wanted(model("patch_lead")) and m.wanted_runner_up(model("score", "patch_lead"))
+    assert m.wanted_runner_up(model("patch_second"))
     m.always = True
-    assert m.wanted(None) and m.wanted(model("score"))
+    assert m.wanted(None) and m.wanted(model("score")) and m.wanted_runner_up(None)
     shipped = load_calibration("offline").variants["two-stage+verify"]
     assert "patch_sim" in shipped.features and PatchMatcher(lambda *a: {}, lambda: None).wanted(shipped)
+
+
+def test_runner_up_lead():
+    """The runner-up's patch_sim and the top-1's lead over it (negative when the runner-up matches better);
+    ``None`` where either side has no patch agreement."""
+    top = {"patch_sim": 0.8, "patch_cover": 0.7}
+    assert runner_up_lead(top, {"patch_sim": 0.6}) == pytest.approx({"patch_second": 0.6, "patch_lead": 0.2})
+    assert runner_up_lead({"patch_sim": 0.5}, {"patch_sim": 0.6})["patch_lead"] == pytest.approx(-0.1)
+    assert runner_up_lead(top, dict.fromkeys(PATCH_FEATURES)) == {"patch_second": None, "patch_lead": None}
+    assert runner_up_lead(dict.fromkeys(PATCH_FEATURES), {"patch_sim": 0.6}) == {
+        "patch_second": 0.6,
+        "patch_lead": None,
+    }
+    assert set(LEAD_FEATURES) <= set(FEATURES)

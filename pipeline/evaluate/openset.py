@@ -20,9 +20,11 @@ model is then fitted on all answers with the same rule.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -62,6 +64,33 @@ class Example:
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def load_examples(
+    paths: list[str | Path],
+    variant: str | None = None,
+    rois: tuple[str, ...] | None = None,
+    together: set[str] | frozenset[str] = frozenset(),
+) -> list[Example]:
+    """The answers written one JSON line each (``Example.to_json``, as ``python -m pipeline.evaluate
+    openset`` and ``bench/openset_examples.py`` write them) in ``paths``, of ``variant`` and the ROI kinds
+    ``rois`` only when given; features no longer offered are dropped, and the sources in ``together`` share
+    one weight group."""
+    from pipeline.query.accept import FEATURES
+
+    out = []
+    for p in paths:
+        for line in Path(p).read_text(encoding="utf-8").splitlines():
+            if not line.strip():
+                continue
+            e = Example(**json.loads(line))
+            if (variant is not None and e.variant != variant) or (rois is not None and e.roi not in rois):
+                continue
+            e.features = {k: v for k, v in e.features.items() if k in FEATURES}
+            if e.source in together:
+                e.weight_group = "+".join(sorted(together))
+            out.append(e)
+    return out
 
 
 def collect(

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.query.patches import PATCH_FEATURES
+from pipeline.query.patches import LEAD_FEATURES, PATCH_FEATURES
 
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
 FEATURES = (
@@ -53,6 +53,7 @@ FEATURES = (
     "image_lead",
     "learned_lead",
     *PATCH_FEATURES,
+    *LEAD_FEATURES,
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024

@@ -15,6 +15,13 @@ each the best over the top-1's :data:`VIEWS` views that the plain learned cosine
 * ``patch_low``: the lower quartile of the ROI patches' best cosines, the parts the view matches worst
   (a look-alike lacks some parts, which the mean dilutes).
 
+Two more (:data:`LEAD_FEATURES`) compare the top-1 with the runner-up, the next model in the ranking:
+``patch_second`` is the runner-up's ``patch_sim`` (its own best views), ``patch_lead`` how far the top-1's
+``patch_sim`` is ahead of it. A right model usually matches part by part clearly better than the next one,
+while an absent object's look-alikes match about as well as each other; and a lead cancels what a photo's
+lighting and camera take off every model's patch cosines alike. They cost the runner-up's views one more
+encoder pass, so they are computed only when the calibration reads them (or ``always``).
+
 The view's tokens are computed at query time from the stored view image (one encoder pass, kept in a
 bounded cache per view) rather than stored at onboarding: 256 tokens of 384 values per view would add
 about 2.4 MB per model (12 views, float16) to the store to serve the top-1 of each query only. Measured
@@ -33,6 +40,8 @@ from PIL import Image
 
 #: the features this module adds to an answer (:data:`pipeline.query.accept.FEATURES` lists them)
 PATCH_FEATURES = ("patch_cover", "patch_sim", "patch_mnn", "patch_low")
+#: the features comparing the top-1's patch agreement with the runner-up's (:func:`runner_up_lead`)
+LEAD_FEATURES = ("patch_second", "patch_lead")
 #: the quantile of the ROI patches' best cosines that ``patch_low`` reads
 LOW_QUANTILE = 0.25
 #: a pixel is the object's when a channel differs from the background by more than this (as the encoders)
@@ -69,6 +78,13 @@ def top_views(view_ids: np.ndarray, view_scores: np.ndarray, k: int) -> list[int
     ok = (ids >= 0) & np.isfinite(sc)
     ids, sc = ids[ok], sc[ok]
     return [int(ids[i]) for i in np.argsort(-sc, kind="stable")[: max(int(k), 0)]]
+
+
+def runner_up_lead(top: dict[str, float | None], second: dict[str, float | None]) -> dict[str, float | None]:
+    """:data:`LEAD_FEATURES` from the top-1's and the runner-up's :data:`PATCH_FEATURES`: the runner-up's
+    ``patch_sim`` and the top-1's lead over it (``None`` where either is missing)."""
+    a, b = top.get("patch_sim"), second.get("patch_sim")
+    return {"patch_second": b, "patch_lead": None if a is None or b is None else float(a - b)}
 
 
 def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str, float | None]:
@@ -113,7 +129,13 @@ class PatchMatcher:
     def wanted(self, model) -> bool:
         """Whether a verdict by ``model`` (an :class:`pipeline.query.accept.AcceptModel` or ``None``) needs
         the patch features."""
-        return self.always or bool(model is not None and set(PATCH_FEATURES) & set(model.features))
+        return self.always or bool(
+            model is not None and set(PATCH_FEATURES + LEAD_FEATURES) & set(model.features)
+        )
+
+    def wanted_runner_up(self, model) -> bool:
+        """Whether a verdict by ``model`` also needs the runner-up's patch agreement (:data:`LEAD_FEATURES`)."""
+        return self.always or bool(model is not None and set(LEAD_FEATURES) & set(model.features))
 
     def clear(self) -> None:
         """Forget every cached view (benchmarks of the uncached cost)."""
@@ -139,7 +161,9 @@ class PatchMatcher:
                         images[k] = im.convert("RGB")
             got = dict.fromkeys(todo)
             if images:
-                got.update(zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True))
+                got.update(
+                    zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True)
+                )
             with self._lock:
                 for k, t in got.items():
                     self._cache[k] = t

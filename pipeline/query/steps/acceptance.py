@@ -15,7 +15,7 @@ import numpy as np
 
 from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
 from pipeline.query.patches import VIEWS as PATCH_VIEWS
-from pipeline.query.patches import top_views
+from pipeline.query.patches import runner_up_lead, top_views
 from pipeline.query.steps.state import RankState
 
 
@@ -55,11 +55,21 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     if ctx.patches is not None and len(order) and state.emb.learned is not None and ctx.patches.wanted(model):
         # patch agreement of the ROI and the top-1's views that the plain learned cosine ranks first
         t0 = time.perf_counter()
-        mesh = int(state.mesh_idx[int(order[0])])
-        s = ctx.learned.score(state.emb.learned, np.array([mesh]), per_view=True)
-        views = top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
-        feats.update(ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], views))
+        top = _patches(state, int(order[0]))
+        feats.update(top)
+        if len(order) > 1 and ctx.patches.wanted_runner_up(model):  # and the runner-up's, for its lead
+            feats.update(runner_up_lead(top, _patches(state, int(order[1]))))
         state.timings["patches_ms"] = (time.perf_counter() - t0) * 1000
     threshold = state.request.accept_threshold
     state.verdict = judge(ctx.calibration, feats, variant, threshold, ctx.calibration_mismatch, samples)
     return state
+
+
+def _patches(state: RankState, position: int) -> dict[str, float | None]:
+    """The patch agreement of the ROI with the candidate at ``position``: its views that the plain learned
+    cosine ranks first."""
+    ctx = state.ctx
+    mesh = int(state.mesh_idx[position])
+    s = ctx.learned.score(state.emb.learned, np.array([mesh]), per_view=True)
+    views = top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
+    return ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], views)
