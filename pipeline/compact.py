@@ -47,7 +47,7 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
     else:
         dt = store.delta(dataset)
         if before > 1:
-            dt.optimize.compact(writer_properties=_props())
+            dt.optimize.compact(writer_properties=_props(dataset))
         rows = store.read(dataset, columns=["run_id"]).num_rows
     store.refresh(dataset)  # reload at the new version
     return {
@@ -125,10 +125,10 @@ def auto_compact(store: Store, run_id: str, threshold: int = AUTO_COMPACT_FILES)
     return done
 
 
-def _props():
+def _props(dataset: str):
     from pipeline.store import writer_properties
 
-    return writer_properties()
+    return writer_properties(dataset)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -165,3 +165,65 @@ def test_sql_as_of(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out) == [{"n": 2}]
     assert sql_main([str(tmp_path / "st"), "--as-of", "yesterday", *sql]) == 2
     assert "--as-of expects" in capsys.readouterr().err
+
+
+def _views(ids, n_views, run_id):
+    rows = [(m, v) for v in range(n_views) for m in ids]  # not in model order, as a batch may come
+    n = len(rows)
+    return pa.table(
+        {
+            "mesh_id": [m for m, _ in rows],
+            "view_index": pa.array([v for _, v in rows], pa.int16()),
+            "azimuth_deg": pa.array([0.0] * n, pa.float32()),
+            "elevation_deg": pa.array([0.0] * n, pa.float32()),
+            "camera_pose": pa.array([[0.0] * 16] * n, schemas.MAT4),
+            "yfov_deg": pa.array([40.0] * n, pa.float32()),
+            "width": pa.array([8] * n, pa.int32()),
+            "height": pa.array([8] * n, pa.int32()),
+            "image": [f"{m}/{v}".encode() for m, v in rows],
+            "fingerprint": ["fp"] * n,
+            "run_id": [run_id] * n,
+        }
+    )
+
+
+def test_views_are_written_by_model_in_small_row_groups(tmp_path):
+    """The views table (the PNGs) is written sorted by model in row groups of VIEW_ROW_GROUP_ROWS, so a
+    read of one model's views skips the others' row groups; other tables keep the large groups; compaction
+    keeps the small groups, and the query path's read of some views of a model gives the same bytes."""
+    import pyarrow.parquet as pq
+
+    from pipeline.store import ROW_GROUP_ROWS, VIEW_ROW_GROUP_ROWS
+
+    ids = [f"m{i:02d}" for i in range(9)]
+    s = Store.open(tmp_path / "st", create=True)
+    s.commit({"views": _views(ids, 12, "r1"), "captions": _captions(ids * 3, "r1", "c")}, "r1")
+    s.commit({"views": _views(ids[:3], 12, "r2")}, "r2")
+
+    def groups(dataset):
+        out = []
+        for f in sorted((tmp_path / "st" / dataset).glob("*.parquet")):
+            md = pq.ParquetFile(f).metadata
+            for g in range(md.num_row_groups):
+                col = md.row_group(g).column(0)  # mesh_id
+                out.append((md.row_group(g).num_rows, col.statistics.min, col.statistics.max))
+        return out
+
+    views = groups("views")
+    assert max(n for n, _, _ in views) == VIEW_ROW_GROUP_ROWS == 12
+    assert all(lo == hi for _, lo, hi in views)  # 12 views per model: one model per row group
+    assert len(groups("captions")) == 1 and ROW_GROUP_ROWS > 27
+    s.close()
+    assert compact_main([str(tmp_path / "st")]) == 0
+    s = Store.open(tmp_path / "st")
+    assert len(s.parts("views")) == 1 and max(n for n, _, _ in groups("views")) <= VIEW_ROW_GROUP_ROWS
+    assert s.read("views").num_rows == 9 * 12  # the superseded rows of r1 dropped
+    from pipeline.db import connect, load_sql
+
+    con = connect(s)
+    got = con.sql(
+        load_sql("view_images"),
+        params={"mesh_id": "m01", "view_indices": [0, 5, 99], "render_fingerprint": "fp"},
+    ).fetchall()
+    assert sorted((int(v), bytes(b)) for v, b in got) == [(0, b"m01/0"), (5, b"m01/5")]
+    s.close()
