@@ -127,22 +127,10 @@ def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_
     with the top-1's two best views by the learned cosine, computed from the stored PNGs, when asked for
     (``always``, as the open-set evaluation sets it) and then also in the open-set split; a calibration that
     reads no patch feature costs no encoder pass."""
-    import shutil
-
-    from conftest import SAMPLE_LIBRARY
-    from onboard_helpers import onboard
-    from query_helpers import render_query_view
-
     from pipeline.evaluate.openset_split import without_meshes
-    from pipeline.mesh.settings import RenderConfig
     from pipeline.query import Retriever
 
-    lib = tmp_path / "lib"
-    for n in ("005_tomato_soup_can", "006_mustard_bottle", "011_banana"):
-        shutil.copytree(SAMPLE_LIBRARY / n, lib / n)
-    store = tmp_path / "store"
-    onboard(lib, store, models=offline_models, render=RenderConfig(resolution=192))
-    img, mask = render_query_view(next((lib / "006_mustard_bottle").rglob("*.obj")))
+    store, img, mask = _three_model_store(tmp_path, offline_models)
     with Retriever.open(store, profile="offline", models=offline_models) as r:
         roi = r.make_roi(img, "the mustard bottle", mask=mask)
         emb = r.embed(roi, "the mustard bottle")
@@ -221,3 +209,77 @@ def test_runner_up_lead():
         "patch_lead": None,
     }
     assert set(LEAD_FEATURES) <= set(FEATURES)
+
+
+def test_patch_pass_starts_beside_verification(tmp_path, offline_models, monkeypatch):
+    """With a free side thread, the encoder pass over the pre-verification top-1's views starts before
+    verification (steps/patch_prefetch.py); the verdict's features are those of the pass run in place, and
+    when verification keeps that top-1 its views are encoded once. Without a free thread nothing starts."""
+    import pipeline.query.overlap as overlap
+    from pipeline.query import Retriever
+    from pipeline.query.steps import patch_prefetch
+
+    store, img, mask = _three_model_store(tmp_path, offline_models)
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        r.ranking.patches.always = True
+        roi = r.make_roi(img, "the mustard bottle", mask=mask)
+        emb = r.embed(roi, "the mustard bottle")
+        assert emb.local is not None
+        monkeypatch.setattr(overlap, "overlapping", lambda: False)
+        monkeypatch.setattr(patch_prefetch, "overlapping", lambda: False)
+        in_place = r.rank(emb, top=3)
+        r.ranking.patches.clear()
+
+        started, reads = [], []
+        real_run, real_read = patch_prefetch.run, r.ranking.patches._view_images  # noqa: SLF001
+
+        def spy_run(state):
+            state = real_run(state)
+            early = state.patch_prefetch
+            mesh = None if early is None else state.ctx.mesh_id[int(state.mesh_idx[early[0]])]
+            started.append((early, mesh))
+            return state
+
+        def spy_read(mesh_id, views):  # the matcher reads a model's views only for tokens it has not cached
+            reads.append(mesh_id)
+            return real_read(mesh_id, views)
+
+        monkeypatch.setattr(r.ranking.patches, "_view_images", spy_read)
+        assert overlap.beside_if_free(lambda: 1) is None  # no free side thread: nothing starts
+        monkeypatch.setattr(overlap, "overlapping", lambda: True)
+        monkeypatch.setattr(patch_prefetch, "overlapping", lambda: True)
+        import pipeline.query.steps as steps
+
+        lists = {
+            k: tuple(type(s)(spy_run, s.options) if s.run is real_run else s for s in v)
+            for k, v in steps.STEP_LISTS.items()
+        }
+        monkeypatch.setattr(steps, "STEP_LISTS", lists)
+        early = r.rank(emb, top=3)
+        (future, mesh), = started
+        assert future is not None and future[1].done()
+        assert early.verdict.features == in_place.verdict.features
+        assert [c.mesh_id for c in early.candidates] == [c.mesh_id for c in in_place.candidates]
+        # the early pass read and encoded the pre-verification top-1's views, once: the verdict (which
+        # also reads the runner-up's, as `always` asks) found them cached
+        assert reads.count(mesh) == 1 and reads[0] == mesh
+
+
+def _three_model_store(tmp_path, offline_models):
+    """A store of three sample models onboarded with the offline models, and a masked render of the
+    mustard bottle to ask it (image, mask)."""
+    import shutil
+
+    from conftest import SAMPLE_LIBRARY
+    from onboard_helpers import onboard
+    from query_helpers import render_query_view
+
+    from pipeline.mesh.settings import RenderConfig
+
+    lib = tmp_path / "lib"
+    for n in ("005_tomato_soup_can", "006_mustard_bottle", "011_banana"):
+        shutil.copytree(SAMPLE_LIBRARY / n, lib / n)
+    store = tmp_path / "store"
+    onboard(lib, store, models=offline_models, render=RenderConfig(resolution=192))
+    img, mask = render_query_view(next((lib / "006_mustard_bottle").rglob("*.obj")))
+    return store, img, mask

@@ -66,20 +66,30 @@ def _shared_pool() -> tuple[ThreadPoolExecutor, threading.BoundedSemaphore]:
 def beside(fn: Callable[[], T]) -> Future[T]:
     """``fn()`` started in the shared pool (or run now, when not :func:`overlapping` or every pool thread is
     busy); ``.result()`` gives its value or raises what it raised."""
-    if overlapping():
-        pool, free = _shared_pool()
-        if free.acquire(blocking=False):
-
-            def run() -> T:
-                try:
-                    return fn()
-                finally:
-                    free.release()
-
-            return pool.submit(run)
+    started = beside_if_free(fn)
+    if started is not None:
+        return started
     done: Future[T] = Future()
     try:
         done.set_result(fn())
     except Exception as exc:  # re-raised by .result(), in the caller's order, as the pool would
         done.set_exception(exc)  # (a Ctrl-C is not held back: it stops the query now, as before)
     return done
+
+
+def beside_if_free(fn: Callable[[], T]) -> Future[T] | None:
+    """``fn()`` started in the shared pool when :func:`overlapping` and a pool thread is free, else
+    ``None`` (not run): for work worth doing early only where it costs the query nothing."""
+    if not overlapping():
+        return None
+    pool, free = _shared_pool()
+    if not free.acquire(blocking=False):
+        return None
+
+    def run() -> T:
+        try:
+            return fn()
+        finally:
+            free.release()
+
+    return pool.submit(run)

@@ -15,6 +15,7 @@ service and the evaluation sweeps, all rank here; no step calls a model, so re-r
 ``text_terms``    the ROI caption's and the prompt's own text scores for the fusion (``text_roi``, ``text_prompt``)
 ``learned``       the learned view encoder's cosine (``learned``) and the fused score (``fusion``)
 ``fuse``          order by score channels
+``patch_prefetch``  the verdict's encoder pass over the top-1's views, started beside verification
 ``verify``        local-feature inliers of the top candidates fused into their score (``inliers``, ``fused``)
 ``acceptance``    the open-set verdict: calibrated ``confidence`` and ``accepted`` (pipeline.query.accept)
 ``candidates``    the top of the order as result records
@@ -38,6 +39,7 @@ from pipeline.query.steps import (
     fuse,
     handoff,
     learned,
+    patch_prefetch,
     shortlist,
     stage2,
     text_terms,
@@ -67,6 +69,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(text_terms.run),
         Step(learned.run),
         Step(fuse.run, {"by": ("fusion", "text")}),
+        Step(patch_prefetch.run),
         Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),
@@ -86,6 +89,7 @@ STEP_LISTS: dict[str, tuple[Step, ...]] = {
         Step(stage2.run),
         Step(learned.run),
         Step(fuse.run, {"by": ("fusion",)}),
+        Step(patch_prefetch.run),
         Step(verify.run, {"base": "fusion"}),
         Step(acceptance.run),
         Step(candidates.run),

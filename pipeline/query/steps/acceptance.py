@@ -55,6 +55,9 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     if ctx.patches is not None and len(order) and state.emb.learned is not None and ctx.patches.wanted(model):
         # patch agreement of the ROI and the top-1's views that the plain learned cosine ranks first
         t0 = time.perf_counter()
+        early = state.patch_prefetch
+        if early is not None and early[0] == int(order[0]):  # started beside verification: its tokens
+            early[1].result()  # are then in the view cache (raises what the encoder raised)
         top = _patches(state, int(order[0]))
         feats.update(top)
         if len(order) > 1 and ctx.patches.wanted_runner_up(model):  # and the runner-up's, for its lead
@@ -65,11 +68,16 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     return state
 
 
-def _patches(state: RankState, position: int) -> dict[str, float | None]:
-    """The patch agreement of the ROI with the candidate at ``position``: its views that the plain learned
-    cosine ranks first."""
+def patch_views(state: RankState, position: int) -> tuple[str, list[int]]:
+    """The mesh id of the candidate at ``position`` and its views that the plain learned cosine ranks
+    first (those its patch agreement reads)."""
     ctx = state.ctx
     mesh = int(state.mesh_idx[position])
     s = ctx.learned.score(state.emb.learned, np.array([mesh]), per_view=True)
-    views = top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
-    return ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], views)
+    return ctx.mesh_id[mesh], top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
+
+
+def _patches(state: RankState, position: int) -> dict[str, float | None]:
+    """The patch agreement of the ROI with the candidate at ``position`` (:func:`patch_views`)."""
+    mesh_id, views = patch_views(state, position)
+    return state.ctx.patches.features(state.emb.learned_patches, mesh_id, views)

@@ -132,6 +132,7 @@ class RankState:
     candidates: list[Candidate] = field(default_factory=list)  # the ranked records (top of ``order``)
     view_ranking: ViewRanking | None = None
     verdict: Any = None  # pipeline.query.accept.Verdict (the acceptance step)
+    patch_prefetch: Any = None  # (mesh position, Future) of the top-1's view tokens (steps/patch_prefetch.py)
     notes: list[str] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)  # milliseconds per step
 
