@@ -80,6 +80,14 @@ def top_views(view_ids: np.ndarray, view_scores: np.ndarray, k: int) -> list[int
     return [int(ids[i]) for i in np.argsort(-sc, kind="stable")[: max(int(k), 0)]]
 
 
+def best_views(learned, query: np.ndarray, mesh: int, k: int = VIEWS) -> list[int]:
+    """The ``k`` views of model ``mesh`` (its store position) that the plain learned cosine of ``query``
+    ranks first, best first (``learned``: the ranking's learned-encoder scorer): those the patch agreement
+    reads."""
+    s = learned.score(query, np.array([int(mesh)]), per_view=True)
+    return top_views(s.view_ids[0], s.view_scores[0], k)
+
+
 def runner_up_lead(top: dict[str, float | None], second: dict[str, float | None]) -> dict[str, float | None]:
     """:data:`LEAD_FEATURES` from the top-1's and the runner-up's :data:`PATCH_FEATURES`: the runner-up's
     ``patch_sim`` and the top-1's lead over it (``None`` where either is missing)."""

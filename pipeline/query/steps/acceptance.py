@@ -14,8 +14,7 @@ import time
 import numpy as np
 
 from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
-from pipeline.query.patches import VIEWS as PATCH_VIEWS
-from pipeline.query.patches import runner_up_lead, top_views
+from pipeline.query.patches import best_views, runner_up_lead
 from pipeline.query.steps.state import RankState
 
 
@@ -68,16 +67,10 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
     return state
 
 
-def patch_views(state: RankState, position: int) -> tuple[str, list[int]]:
-    """The mesh id of the candidate at ``position`` and its views that the plain learned cosine ranks
-    first (those its patch agreement reads)."""
+def _patches(state: RankState, position: int) -> dict[str, float | None]:
+    """The patch agreement of the ROI with the candidate at ``position``: its views that the plain learned
+    cosine ranks first (:func:`pipeline.query.patches.best_views`)."""
     ctx = state.ctx
     mesh = int(state.mesh_idx[position])
-    s = ctx.learned.score(state.emb.learned, np.array([mesh]), per_view=True)
-    return ctx.mesh_id[mesh], top_views(s.view_ids[0], s.view_scores[0], PATCH_VIEWS)
-
-
-def _patches(state: RankState, position: int) -> dict[str, float | None]:
-    """The patch agreement of the ROI with the candidate at ``position`` (:func:`patch_views`)."""
-    mesh_id, views = patch_views(state, position)
-    return state.ctx.patches.features(state.emb.learned_patches, mesh_id, views)
+    views = best_views(ctx.learned, state.emb.learned, mesh)
+    return ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], views)

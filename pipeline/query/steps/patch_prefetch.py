@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from pipeline.query.accept import variant_of
 from pipeline.query.overlap import beside_if_free, overlapping
-from pipeline.query.steps.acceptance import patch_views
+from pipeline.query.patches import best_views
 from pipeline.query.steps.state import RankState
 
 
@@ -32,7 +32,8 @@ def run(state: RankState) -> RankState:
     if not ctx.patches.wanted(model):
         return state
     position = int(order[0])
-    mesh_id, views = patch_views(state, position)
+    mesh = int(state.mesh_idx[position])
+    mesh_id, views = ctx.mesh_id[mesh], best_views(ctx.learned, emb.learned, mesh)
     if views:  # only where a side thread is free: run in place, the pass would be wasted if the top-1 changes
         started = beside_if_free(lambda: ctx.patches.view_tokens(mesh_id, views))
         if started is not None:
