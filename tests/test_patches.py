@@ -49,9 +49,7 @@ def test_patch_agreement_reads_part_by_part_likeness():
     assert abs(same["patch_cover"] - 1.0) < 1e-6 and abs(same["patch_sim"] - 1.0) < 1e-6
     assert same["patch_mnn"] == 1.0 and abs(same["patch_low"] - 1.0) < 1e-6
     half = patch_agreement(parts, parts[:3])  # the view has a counterpart for half of the ROI's parts
-    assert (
-        half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]
-    )  # all of the view's parts match
+    assert half["patch_cover"] < 0.8 and half["patch_sim"] > half["patch_cover"]  # all of the view's parts match
     assert half["patch_mnn"] == 0.5  # one to one: the three shared parts, not the other three
     assert half["patch_low"] < 0.5 < half["patch_cover"]  # the unmatched parts, which the mean dilutes
     other = patch_agreement(parts, _unit(rng.normal(size=(6, 32))))
@@ -77,9 +75,7 @@ class _Encoder:
     def object_patches_batch(self, images):
         self.calls += 1
         self.batches.append(len(images))
-        return [
-            _unit(np.asarray(im, np.float32).reshape(-1, 3)[:4] + 1.0).astype(np.float16) for im in images
-        ]
+        return [_unit(np.asarray(im, np.float32).reshape(-1, 3)[:4] + 1.0).astype(np.float16) for im in images]
 
 
 def _png(colour) -> bytes:
@@ -143,27 +139,24 @@ def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_
         res = r.rank(emb, top=3)
         best = res.candidates[0]
         enc = r.model("learned_encoder")
-        mesh = r.ranking.mesh_id.index(best.mesh_id)
-        s = r.learned.score(emb.learned, np.array([mesh]), per_view=True)
-        views = top_views(s.view_ids[0], s.view_scores[0], VIEWS)
+
+        def direct(mesh_id):  # a model's best views by the learned cosine, and each one's patch agreement
+            mesh = r.ranking.mesh_id.index(mesh_id)
+            s = r.learned.score(emb.learned, np.array([mesh]), per_view=True)
+            views = top_views(s.view_ids[0], s.view_scores[0], VIEWS)
+            each = []
+            for v in views:
+                with Image.open(io.BytesIO(r.tables.view_images(mesh_id, [v])[v])) as view:
+                    each.append(patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB"))))
+            return views, each
+
+        views, each = direct(best.mesh_id)
         assert len(views) == VIEWS == 2
-        each = []
-        for v in views:
-            with Image.open(io.BytesIO(r.tables.view_images(best.mesh_id, [v])[v])) as view:
-                each.append(patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB"))))
         want = {k: max(e[k] for e in each) for k in PATCH_FEATURES}
         got = {k: res.verdict.features[k] for k in PATCH_FEATURES}
         assert got == pytest.approx({k: round(v, 6) for k, v in want.items()}, abs=1e-6)
         assert 0.0 < got["patch_cover"] <= 1.0 and "patches_ms" in res.timings
-        second = res.candidates[1]  # the runner-up's patch agreement, from its own best views
-        mesh2 = r.ranking.mesh_id.index(second.mesh_id)
-        s2 = r.learned.score(emb.learned, np.array([mesh2]), per_view=True)
-        sims = []
-        for v in top_views(s2.view_ids[0], s2.view_scores[0], VIEWS):
-            with Image.open(io.BytesIO(r.tables.view_images(second.mesh_id, [v])[v])) as view:
-                sims.append(
-                    patch_agreement(emb.learned_patches, enc.object_patches(view.convert("RGB")))["patch_sim"]
-                )
+        sims = [e["patch_sim"] for e in direct(res.candidates[1].mesh_id)[1]]  # the runner-up's own best views
         assert res.verdict.features["patch_second"] == pytest.approx(round(max(sims), 6), abs=1e-6)
         lead = res.verdict.features["patch_lead"]
         assert lead == pytest.approx(round(want["patch_sim"] - max(sims), 6), abs=1e-6)

@@ -169,9 +169,7 @@ class PatchMatcher:
                         images[k] = im.convert("RGB")
             got = dict.fromkeys(todo)
             if images:
-                got.update(
-                    zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True)
-                )
+                got.update(zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True))
             with self._lock:
                 for k, t in got.items():
                     self._cache[k] = t

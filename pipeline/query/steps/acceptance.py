@@ -50,7 +50,7 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
         learned_cohort,
     )
     variant = variant_of(state.request.mode, verified)
-    model = ctx.calibration.variants.get(variant) if ctx.calibration is not None else None
+    model = ctx.accept_model(variant)
     if ctx.patches is not None and len(order) and state.emb.learned is not None and ctx.patches.wanted(model):
         # patch agreement of the ROI and the top-1's views that the plain learned cosine ranks first
         t0 = time.perf_counter()

@@ -27,9 +27,7 @@ def run(state: RankState) -> RankState:
         return state
     if not len(order) or not state.request.verify or emb.local is None or not overlapping():
         return state
-    variant = variant_of(state.request.mode, True)
-    model = ctx.calibration.variants.get(variant) if ctx.calibration is not None else None
-    if not ctx.patches.wanted(model):
+    if not ctx.patches.wanted(ctx.accept_model(variant_of(state.request.mode, True))):
         return state
     position = int(order[0])
     mesh = int(state.mesh_idx[position])

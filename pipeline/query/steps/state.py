@@ -113,6 +113,11 @@ class RankContext:
     def n_meshes(self) -> int:
         return len(self.mesh_id)
 
+    def accept_model(self, variant: str):
+        """The calibration's acceptance model of ranking ``variant`` (``None``: no calibration or none for
+        it)."""
+        return self.calibration.variants.get(variant) if self.calibration is not None else None
+
 
 @dataclass
 class RankState:
