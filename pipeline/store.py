@@ -616,7 +616,7 @@ ROW_GROUP_ROWS = 8192
 #: rows per row group of the ``views`` table (its rows carry the PNGs, written sorted by model): about one
 #: model's views, so the query path's read of the top-1's two views (``sql/view_images.sql``, the open-set
 #: patch agreement) decompresses that model's images, not a whole file's (docs/performance.md, "Re-measured
-#: with patch agreement on another AMD EPYC": 1.2 against 14.9 ms for a 192-view file)
+#: with patch agreement on another AMD EPYC"; bench/bench_view_read.py)
 VIEW_ROW_GROUP_ROWS = 12
 
 
