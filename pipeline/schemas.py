@@ -83,6 +83,23 @@ VIEW_FEATURES = pa.schema(
 )
 
 
+#: the learned view encoder's object patch tokens of each view (:mod:`pipeline.onboard.stages.patches`), read
+#: by the open-set verdict's patch agreement (:mod:`pipeline.query.patches`) instead of encoding the view
+VIEW_PATCHES = pa.schema(
+    [
+        pa.field("mesh_id", pa.string(), nullable=False),
+        pa.field("view_index", pa.int16(), nullable=False),
+        pa.field("encoder_id", pa.string(), nullable=False),  # the learned view encoder's model key
+        pa.field("n_patches", pa.int16(), nullable=False),  # the patches that hold the object
+        pa.field("dim", pa.int16(), nullable=False),
+        pa.field("tokens", pa.binary()),  # n_patches x dim float16, little-endian, row-major, each row L2 = 1
+        pa.field("fingerprint", pa.string(), nullable=False),  # encoder, patch settings, render fingerprint
+        pa.field("source_fingerprint", pa.string(), nullable=False),  # the view's render fingerprint
+        pa.field("run_id", pa.string(), nullable=False),
+    ]
+)
+
+
 def embedding_schema(dim: int) -> pa.Schema:
     """Schema of one encoder's partition of ``text_embeddings`` or ``image_embeddings``."""
     return pa.schema(
@@ -158,6 +175,7 @@ TABLES: dict[str, pa.Schema] = {
     "views": VIEWS,
     "captions": CAPTIONS,
     "view_features": VIEW_FEATURES,
+    "view_patches": VIEW_PATCHES,
     "adapters": ADAPTERS,
     "errors": ERRORS,
     "runs": RUNS,
@@ -172,6 +190,7 @@ KEYS: dict[str, tuple[str, ...]] = {
     "views": ("mesh_id", "view_index", "fingerprint"),
     "captions": ("mesh_id", "view_index", "fingerprint"),
     "view_features": ("mesh_id", "view_index", "fingerprint"),
+    "view_patches": ("mesh_id", "view_index", "fingerprint"),
     "text_embeddings": ("mesh_id", "view_index", "fingerprint"),
     "image_embeddings": ("mesh_id", "view_index", "fingerprint"),
     "probe_embeddings": ("mesh_id", "view_index", "fingerprint"),

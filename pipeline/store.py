@@ -48,6 +48,7 @@ TABLE_ORDER = (
     "image_embeddings",
     "probe_embeddings",
     "view_features",
+    "view_patches",
     "adapters",
     "errors",
     "runs",
@@ -401,7 +402,7 @@ class Store:
         schema = expected_schema(dataset, dim)
         table = schemas.conform(table, schema)
         table = table.cast(delta_schema(schema))  # Delta arrays are variable-length lists
-        if table_of(dataset) == "views":  # one model's views together, in few row groups (writer_properties)
+        if table_of(dataset) in BLOB_TABLES:  # one model's views together, in few row groups (writer_properties)
             table = table.sort_by([("mesh_id", "ascending"), ("view_index", "ascending")])
         dt = self.delta(dataset)
         target = dt if dt is not None else str(self.path_of(dataset))
@@ -618,14 +619,18 @@ ROW_GROUP_ROWS = 8192
 #: patch agreement) decompresses that model's images, not a whole file's (docs/performance.md, "Re-measured
 #: with patch agreement on another AMD EPYC"; bench/bench_view_read.py)
 VIEW_ROW_GROUP_ROWS = 12
+#: tables of one large blob per view (PNGs, patch tokens), written sorted by model in row groups of
+#: :data:`VIEW_ROW_GROUP_ROWS`: the query path reads one model's rows of them
+BLOB_TABLES = ("views", "view_patches")
 
 
 def writer_properties(dataset: str | None = None):
     """Parquet settings of the data files the store writes for ``dataset``: zstd, row groups of
-    :data:`ROW_GROUP_ROWS` rows, of :data:`VIEW_ROW_GROUP_ROWS` for ``views``."""
+    :data:`ROW_GROUP_ROWS` rows, of :data:`VIEW_ROW_GROUP_ROWS` for :data:`BLOB_TABLES`."""
     from deltalake import WriterProperties
 
-    rows = VIEW_ROW_GROUP_ROWS if dataset is not None and table_of(dataset) == "views" else ROW_GROUP_ROWS
+    small = dataset is not None and table_of(dataset) in BLOB_TABLES
+    rows = VIEW_ROW_GROUP_ROWS if small else ROW_GROUP_ROWS
     return WriterProperties(compression="ZSTD", max_row_group_size=rows)
 
 

@@ -214,8 +214,8 @@ def stage_literals(path: Path, names: set[str]) -> list[str]:
 def test_stages_declared_once():
     from pipeline.onboard.stages import STAGE_NAMES, STAGES
 
-    assert STAGE_NAMES == ("render", "caption", "embed_text", "embed_image", "probe", "features")
-    assert [s.input for s in STAGES] == [None, "render", "caption", "render", "render", "render"]
+    assert STAGE_NAMES == ("render", "caption", "embed_text", "embed_image", "probe", "patches", "features")
+    assert [s.input for s in STAGES] == [None, "render", "caption", "render", "render", "render", "render"]
     assert stage_literals(STAGE_DECLARATION, set(STAGE_NAMES))  # the check sees the declaration
     # the onboarding wing iterates the declaration (readers look fingerprints up by key in a run's record)
     elsewhere = [

@@ -118,6 +118,92 @@ def test_matcher_encodes_each_view_once_and_bounds_its_cache():
     assert len(out) == 8 and all(o == out[0] for o in out)
 
 
+def test_matcher_reads_stored_tokens_before_encoding():
+    """Tokens onboarding stored are read for the views that have them (one read per model, cached); only
+    the others are read as PNGs and encoded, in one batch; a store without any encodes every view."""
+    enc, asked, read = _Encoder(), [], []
+    stored_tokens = {v: _unit(np.full((2, 3), v + 1.0, np.float32)).astype(np.float16) for v in (0, 1)}
+
+    def stored(mesh_id, view_indices):
+        read.append((mesh_id, list(view_indices)))
+        return {v: stored_tokens[v] for v in view_indices if v in stored_tokens and mesh_id == "m1"}
+
+    def view_images(mesh_id, view_indices):
+        asked.append((mesh_id, list(view_indices)))
+        return {v: _png((v * 20, 10, 10)) for v in view_indices}
+
+    m = PatchMatcher(view_images, lambda: enc, stored=stored)
+    roi = _unit(np.ones((3, 3), np.float32))
+    got = m.view_tokens("m1", [1, 0])
+    assert all(g is stored_tokens[v] for g, v in zip(got, [1, 0], strict=True))
+    assert enc.calls == 0 and asked == [] and read == [("m1", [1, 0])]
+    m.view_tokens("m1", [0, 1, 2])  # views 0 and 1 cached; view 2 has no stored tokens: encoded
+    assert read[-1] == ("m1", [2]) and asked == [("m1", [2])] and enc.batches == [1]
+    both = m.features(roi, "m1", [0, 1])
+    want = {k: max(patch_agreement(roi, stored_tokens[v])[k] for v in (0, 1)) for k in PATCH_FEATURES}
+    assert both == want
+    m.features(roi, "m2", [0, 1])  # a model without stored tokens: encoded from its PNGs
+    assert asked[-1] == ("m2", [0, 1]) and enc.batches[-1] == 2
+
+
+def test_onboarding_stores_the_views_patch_tokens(tmp_path, offline_models, monkeypatch):
+    """The ``patches`` stage stores every view's object patch tokens as the query would encode them, from
+    the forward pass that embeds the views (no second encoder pass); the query reads them instead of
+    encoding the top-1's views, with the same verdict features. A store that lost the table gets it back on
+    the next run, by encoding the views, with no other stage redone."""
+    import shutil
+
+    from onboard_helpers import count, onboard
+
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.onboard.stages.patches import PatchStage
+    from pipeline.query import Retriever
+    from pipeline.query.patches import tokens_of
+    from pipeline.store import Store
+
+    enc = offline_models["learned_encoder"]
+    passes = []
+    real = type(enc).object_patches_batch
+
+    def spy(self, images):
+        passes.append(len(images))
+        return real(self, images)
+
+    monkeypatch.setattr(type(enc), "object_patches_batch", spy)
+    store, img, mask = _three_model_store(tmp_path, offline_models)
+    assert passes == []  # the tokens came from the embedding pass
+    s = Store.open(store)
+    rows = s.read_latest("view_patches").to_pylist()
+    views = {(v["mesh_id"], v["view_index"]): v["image"] for v in s.read_latest("views").to_pylist()}
+    assert len(rows) == len(views) > 0
+    for row in rows[:4]:
+        with Image.open(io.BytesIO(views[(row["mesh_id"], row["view_index"])])) as im:
+            want = real(enc, [im.convert("RGB")])[0]
+        got = tokens_of(row["tokens"], row["n_patches"], row["dim"])
+        assert got.shape == want.shape and row["dim"] == 384
+        assert np.abs(got.astype(np.float32) - want.astype(np.float32)).max() <= 1e-2
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        r.ranking.patches.always = True
+        monkeypatch.setattr(r.ranking.patches, "_view_images", lambda *a: pytest.fail("encoded a stored view"))
+        from_store = r.query(img, "the mustard bottle", mask=mask)
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        r.ranking.patches.always = True
+        r.ranking.patches._stored = None  # noqa: SLF001 - as a store without the stage
+        encoded = r.query(img, "the mustard bottle", mask=mask)
+    assert [c.mesh_id for c in from_store.candidates] == [c.mesh_id for c in encoded.candidates]
+    for k in PATCH_FEATURES + LEAD_FEATURES:
+        assert from_store.verdict.features[k] == pytest.approx(encoded.verdict.features[k], abs=2e-3), k
+    assert from_store.accepted == encoded.accepted
+
+    shutil.rmtree(store / "view_patches")  # a store from before the stage, or one whose table was lost
+    n, calls, real_call = len(passes), [], PatchStage.__call__
+    monkeypatch.setattr(PatchStage, "__call__", lambda self, t: (calls.append(t.num_rows), real_call(self, t))[1])
+    onboard(tmp_path / "lib", store, models=offline_models, render=RenderConfig(resolution=192))
+    assert sum(calls) == len(views) and sum(passes[n:]) == len(views)  # every view encoded here, once
+    assert count(store, "view_patches") == len(views)
+    assert count(store, "views") == len(views)  # nothing else redone
+
+
 def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_models):
     """Onboarded with the offline models: a masked query's verdict carries the patch agreement of its ROI
     with the top-1's two best views by the learned cosine, computed from the stored PNGs, when asked for
@@ -224,7 +310,7 @@ def test_patch_pass_starts_beside_verification(tmp_path, offline_models, monkeyp
         r.ranking.patches.clear()
 
         started, reads = [], []
-        real_run, real_read = patch_prefetch.run, r.ranking.patches._view_images  # noqa: SLF001
+        real_run, real_read = patch_prefetch.run, r.ranking.patches._stored  # noqa: SLF001
 
         def spy_run(state):
             state = real_run(state)
@@ -233,11 +319,11 @@ def test_patch_pass_starts_beside_verification(tmp_path, offline_models, monkeyp
             started.append((early, mesh))
             return state
 
-        def spy_read(mesh_id, views):  # the matcher reads a model's views only for tokens it has not cached
+        def spy_read(mesh_id, views):  # the matcher reads a model's stored tokens only where it has none cached
             reads.append(mesh_id)
             return real_read(mesh_id, views)
 
-        monkeypatch.setattr(r.ranking.patches, "_view_images", spy_read)
+        monkeypatch.setattr(r.ranking.patches, "_stored", spy_read)
         assert overlap.beside_if_free(lambda: 1) is None  # no free side thread: nothing starts
         monkeypatch.setattr(overlap, "overlapping", lambda: True)
         monkeypatch.setattr(patch_prefetch, "overlapping", lambda: True)
@@ -253,7 +339,7 @@ def test_patch_pass_starts_beside_verification(tmp_path, offline_models, monkeyp
         assert future is not None and future[1].done()
         assert early.verdict.features == in_place.verdict.features
         assert [c.mesh_id for c in early.candidates] == [c.mesh_id for c in in_place.candidates]
-        # the early pass read and encoded the pre-verification top-1's views, once: the verdict (which
+        # the early pass read the pre-verification top-1's view tokens, once: the verdict (which
         # also reads the runner-up's, as `always` asks) found them cached
         assert reads.count(mesh) == 1 and reads[0] == mesh
 

@@ -217,6 +217,11 @@ class LearnedViewEncoder:
     def encode_image(self, images: list[Image.Image]) -> np.ndarray:
         return self._encode(list(images))[0]
 
+    def encode_image_patches(self, images: list[Image.Image]) -> tuple[np.ndarray, list[np.ndarray]]:
+        """:meth:`encode_image` of ``images`` and each one's :meth:`object_patches`, from one forward pass
+        (onboarding stores both: ``image_embeddings`` and ``view_patches``)."""
+        return self._encode(list(images), patches=True)
+
     def _encode(self, images: list[Image.Image], patches: bool = False) -> tuple[np.ndarray, list]:
         """Embeddings of ``images`` and, with ``patches``, each one's object patch tokens
         (:meth:`object_patches`, from the same forward pass)."""

@@ -62,7 +62,9 @@ class Retriever:
         self.text_filter, self.reranker, self.learned = c.text_filter, c.reranker, c.learned
         self.verifier, self.handoff = c.verifier, c.handoff
         if c.learned is not None:  # the verdict's patch agreement encodes the top-1's view when asked
-            c.patches = PatchMatcher(tables.view_images, lambda: self.model("learned_encoder"))
+            c.patches = PatchMatcher(
+                tables.view_images, lambda: self.model("learned_encoder"), stored=tables.view_patches
+            )
 
     @classmethod
     def open(

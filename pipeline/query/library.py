@@ -188,6 +188,20 @@ class StoreTables:
             rows = self.con.sql(load_sql("view_images"), params=params).fetchall()
         return {int(v): bytes(png) for v, png in rows if png is not None}
 
+    def view_patches(self, mesh_id: str, view_indices: list[int]) -> dict[int, np.ndarray]:
+        """The learned encoder's object patch tokens of some views of one model, as onboarding stored them
+        (``sql/view_patches.sql``; float16 rows), by view index; views without stored tokens are left out,
+        and every view is when the store's run had no ``patches`` stage (the caller then encodes them)."""
+        from pipeline.query.patches import tokens_of
+
+        fp = self.onboarding.fingerprints.get("patches")
+        if not fp or self.store.dataset("view_patches") is None:
+            return {}
+        params = {"mesh_id": str(mesh_id), "view_indices": [int(v) for v in view_indices], "patches_fingerprint": fp}
+        with self._db_lock:
+            rows = self.con.sql(load_sql("view_patches"), params=params).fetchall()
+        return {int(v): tokens_of(t, n, d) for v, n, d, t in rows if t is not None and n}
+
     def view_poses(self, mesh_ids: list[str]) -> list[dict]:
         """Cameras (pose, field of view, size; no pixels) of the rendered views of ``mesh_ids``
         (``sql/view_poses.sql``; the pose-estimator hand-off, :mod:`pipeline.query.handoff`)."""

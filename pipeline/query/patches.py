@@ -22,10 +22,12 @@ while an absent object's look-alikes match about as well as each other; and a le
 lighting and camera take off every model's patch cosines alike. They cost the runner-up's views one more
 encoder pass, so they are computed only when the calibration reads them (or ``always``).
 
-The view's tokens are computed at query time from the stored view image (one encoder pass, kept in a
-bounded cache per view) rather than stored at onboarding: 256 tokens of 384 values per view would add
-about 2.4 MB per model (12 views, float16) to the store to serve the top-1 of each query only. Measured
-in docs/results.md, section 12.
+The views' tokens are read from the store's ``view_patches`` table, which onboarding fills from the
+forward pass that embeds the views (:mod:`pipeline.onboard.stages.patches`; about 1 MB per model, the
+object's patches only, float16). For views without stored tokens (a store onboarded before that stage) they
+are computed from the stored view image, one encoder pass, the largest part of a warm masked query on 2 cores
+(docs/performance.md, "Stored patch tokens"). Either way they are kept in a bounded cache per view.
+Measured in docs/results.md, section 12.
 """
 
 from __future__ import annotations
@@ -55,6 +57,18 @@ MIN_PATCHES = 4
 VIEWS = 2
 #: views whose patch tokens are kept (LRU)
 CACHE_VIEWS = 512
+
+
+def tokens_bytes(tokens: np.ndarray) -> bytes:
+    """``tokens`` (rows) as the ``tokens`` column stores them: float16, little-endian, row-major."""
+    return np.ascontiguousarray(tokens, dtype="<f2").tobytes()
+
+
+def tokens_of(data: bytes | None, n: int, dim: int) -> np.ndarray | None:
+    """The ``(n, dim)`` float16 tokens of a ``tokens`` value (``None`` for none)."""
+    if data is None:
+        return None
+    return np.frombuffer(data, dtype="<f2", count=int(n) * int(dim)).reshape(int(n), int(dim))
 
 
 def object_cells(image: Image.Image, fill: tuple[int, int, int], grid: int) -> np.ndarray:
@@ -116,9 +130,11 @@ def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str
 
 
 class PatchMatcher:
-    """The top-1 views' object patch tokens on demand: ``view_images(mesh_id, view_indices)`` gives the
-    stored PNG bytes by view index (one store read; views without an image left out), ``encoder()`` the learned view encoder (loaded on first use);
-    tokens are cached per view (thread-safe; the encoder runs outside the lock). The verdict computes the
+    """The top-1 views' object patch tokens on demand: ``stored(mesh_id, view_indices)`` gives the tokens
+    onboarding stored by view index (one store read; views without them left out), and for the others
+    ``view_images(mesh_id, view_indices)`` the stored PNG bytes (views without an image left out), which
+    ``encoder()``, the learned view encoder (loaded on first use), encodes in one batch. Tokens are cached
+    per view (thread-safe; the store reads and the encoder run outside the lock). The verdict computes the
     features only when its calibration reads them, or always when ``always`` is set (the open-set
     evaluation, which records every feature an answer offers for the fits)."""
 
@@ -127,8 +143,9 @@ class PatchMatcher:
         view_images: Callable[[str, list[int]], dict[int, bytes]],
         encoder: Callable[[], object],
         cache_views: int = CACHE_VIEWS,
+        stored: Callable[[str, list[int]], dict[int, np.ndarray]] | None = None,
     ) -> None:
-        self._view_images, self._encoder = view_images, encoder
+        self._view_images, self._encoder, self._stored = view_images, encoder, stored
         self._cache: OrderedDict[tuple[str, int], np.ndarray | None] = OrderedDict()
         self._size = max(int(cache_views), 1)
         self._lock = threading.Lock()
@@ -152,31 +169,40 @@ class PatchMatcher:
 
     def view_tokens(self, mesh_id: str, views: list[int]) -> list[np.ndarray | None]:
         """The object patch tokens of ``views`` of ``mesh_id`` (``None`` for a view without an image);
-        the uncached ones are encoded in one batch."""
+        the uncached ones are read from the store, and those it has none of encoded in one batch."""
         keys = [(str(mesh_id), int(v)) for v in views]
         with self._lock:
             have = {k: self._cache[k] for k in keys if k in self._cache}
             for k in have:
                 self._cache.move_to_end(k)
         todo = [k for k in dict.fromkeys(keys) if k not in have]
+        if todo and self._stored is not None:  # one model per call
+            found = self._stored(todo[0][0], [v for _, v in todo])
+            got = {k: found[k[1]] for k in todo if k[1] in found}
+            have.update(self._keep(got))
+            todo = [k for k in todo if k not in got]
         if todo:
             got_png = self._view_images(todo[0][0], [v for _, v in todo])  # one model per call
-            pngs = {k: got_png.get(k[1]) for k in todo}
             images = {}
-            for k, png in pngs.items():
+            for k in todo:
+                png = got_png.get(k[1])
                 if png is not None:
                     with Image.open(io.BytesIO(png)) as im:
                         images[k] = im.convert("RGB")
             got = dict.fromkeys(todo)
             if images:
                 got.update(zip(images, self._encoder().object_patches_batch(list(images.values())), strict=True))
-            with self._lock:
-                for k, t in got.items():
-                    self._cache[k] = t
-                while len(self._cache) > self._size:
-                    self._cache.popitem(last=False)
-            have.update(got)
+            have.update(self._keep(got))
         return [have[k] for k in keys]
+
+    def _keep(self, got: dict[tuple[str, int], np.ndarray | None]) -> dict[tuple[str, int], np.ndarray | None]:
+        """Cache ``got`` (view key -> tokens), dropping the least recently used views beyond the bound."""
+        with self._lock:
+            for k, t in got.items():
+                self._cache[k] = t
+            while len(self._cache) > self._size:
+                self._cache.popitem(last=False)
+        return got
 
     def features(self, roi: np.ndarray | None, mesh_id: str, views: list[int]) -> dict[str, float | None]:
         """:data:`PATCH_FEATURES` of the ROI's patch tokens against the best of ``views`` of ``mesh_id``

@@ -1,6 +1,6 @@
 """Onboarding stages, and :data:`STAGES`: the one declaration of the stages, their order and inputs.
 
-Each stage (``render``, ``caption``, ``embed``, ``probe``, ``features``) is a callable object over Arrow tables that holds its
+Each stage (``render``, ``caption``, ``embed``, ``probe``, ``patches``, ``features``) is a callable object over Arrow tables that holds its
 model for its whole life: it maps an input ``pa.Table`` to an output ``pa.Table`` whose rows either
 conform to a store table or carry an ``error`` (one row per failed mesh), so the same code runs in the
 local engine and under Ray Data ``map_batches`` (:func:`pipeline.onboard.stages.base.split_errors`
@@ -54,6 +54,12 @@ def probe_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
     from pipeline.onboard.stages.probe import ProbeStage
 
     return ProbeStage(cfg, run_id, step, model)
+
+
+def patches_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
+    from pipeline.onboard.stages.patches import PatchStage
+
+    return PatchStage(cfg, run_id, step, model)
 
 
 def features_runner(cfg: Any, run_id: str, step: Step, model: Any = None):
@@ -127,6 +133,20 @@ def probe_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) ->
     )
 
 
+def patches_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
+    """The encoder's (as :func:`encoder_fingerprint`), which patches are kept and how they are stored
+    (:func:`pipeline.onboard.stages.patches.settings`) and the render gray they are told from."""
+    from pipeline.onboard.stages.patches import settings
+
+    return fingerprint(
+        {
+            "encoder": encoder_fingerprint(cfg, spec, upstream),
+            "patches": settings(),
+            "background": list(cfg.render.background),
+        }
+    )
+
+
 def features_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
     return cfg.features.fingerprint(upstream)
 
@@ -149,6 +169,12 @@ def embeddings_schema(out: pa.Table) -> pa.Schema:
     from pipeline import schemas
 
     return schemas.embedding_schema(out.schema.field("embedding").type.list_size)
+
+
+def view_patches_schema(out: pa.Table) -> pa.Schema:
+    from pipeline import schemas
+
+    return schemas.VIEW_PATCHES
 
 
 def view_features_schema(out: pa.Table) -> pa.Schema:
@@ -192,6 +218,15 @@ STAGES: tuple[Stage, ...] = (
         embeddings_schema,
         per_encoder=True,
         enabled=probes_enabled,
+    ),
+    Stage(
+        "patches",
+        "render",
+        "view_patches",
+        learned_encoder,
+        patches_fingerprint,
+        patches_runner,
+        view_patches_schema,
     ),
     Stage(
         "features",

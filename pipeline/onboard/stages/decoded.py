@@ -23,6 +23,7 @@ from contextlib import contextmanager
 CAPACITY = 256
 
 _cache: OrderedDict[bytes, object] = OrderedDict()
+_memo: OrderedDict[tuple[str, bytes], object] = OrderedDict()
 _lock = threading.Lock()
 _depth = 0
 
@@ -40,6 +41,7 @@ def batch_scope() -> Iterator[None]:
             _depth -= 1
             if _depth == 0:
                 _cache.clear()
+                _memo.clear()
 
 
 def decoded_view(data: bytes):
@@ -62,6 +64,34 @@ def decoded_view(data: bytes):
         while len(_cache) > CAPACITY:
             _cache.popitem(last=False)
     return image
+
+
+def sharing() -> bool:
+    """Whether a :func:`batch_scope` is open (what :func:`remember` keeps is then seen by later stages)."""
+    with _lock:
+        return _depth > 0
+
+
+def remember(kind: str, data: bytes, value: object) -> None:
+    """Keep ``value``, a result of stage work on the view of PNG bytes ``data`` (``kind`` names the work),
+    for the later stages of the open batch (:func:`recall`); outside a scope, nothing is kept. The image
+    embedding stage keeps the learned encoder's object patch tokens this way, from the forward pass that
+    embeds the views, so the ``patches`` stage does not run the encoder again."""
+    key = (kind, hashlib.blake2b(data, digest_size=16).digest())
+    with _lock:
+        if _depth == 0:
+            return
+        _memo[key] = value
+        _memo.move_to_end(key)
+        while len(_memo) > CAPACITY:
+            _memo.popitem(last=False)
+
+
+def recall(kind: str, data: bytes) -> object | None:
+    """What :func:`remember` kept for ``kind`` and ``data`` in the open batch (``None`` if nothing)."""
+    key = (kind, hashlib.blake2b(data, digest_size=16).digest())
+    with _lock:
+        return _memo.get(key)
 
 
 def cached() -> int:

@@ -64,6 +64,18 @@ class ImageEmbedStage(EmbedStage):
     """Embeds every view with one of the profile's image encoders (``view_encoder`` or ``clip_image_encoder``)."""
 
     def _encode(self, views: pa.Table):
-        from pipeline.onboard.stages.decoded import decoded_view
+        from pipeline.onboard.stages import decoded
+        from pipeline.onboard.stages.patches import memo_kind
 
-        return self.model.encode_image([decoded_view(b) for b in views.column("image").to_pylist()])
+        pngs = views.column("image").to_pylist()
+        images = [decoded.decoded_view(b) for b in pngs]
+        both = getattr(self.model, "encode_image_patches", None)
+        if self.role != "learned_encoder" or both is None or not decoded.sharing():
+            return self.model.encode_image(images)
+        # the learned encoder's object patch tokens come from the same forward pass: kept for the
+        # batch's ``patches`` stage (pipeline/onboard/stages/patches.py), which then runs no encoder
+        vecs, kept = both(images)
+        kind = memo_kind(self.spec)
+        for png, tokens in zip(pngs, kept, strict=True):
+            decoded.remember(kind, png, tokens)
+        return vecs

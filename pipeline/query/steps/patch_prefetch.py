@@ -10,6 +10,10 @@ acceptance step encodes that one's views as before and the early pass only warme
 when the verdict will not read patch features, when there is nothing to verify, or without a free side
 thread (a free core, no other query's side call in it): run in place, the pass would only come sooner,
 and for nothing when the top-1 changes.
+
+With the tokens onboarding stores (``view_patches``, :mod:`pipeline.onboard.stages.patches`) the early
+work is one store read of the model's two rows instead of an encoder pass; the step is kept for stores
+without them.
 """
 
 from __future__ import annotations
