@@ -244,6 +244,11 @@ def test_steps_follow_the_declaration():
     assert [s.input for s in paper.steps] == [None, "render", "caption", "render", "render", "render"]
     assert paper.step("features").dataset == "view_features"
     assert paper.fingerprints == OnboardConfig(profile="paper").fingerprints()
+    offline = OnboardConfig().resolve()
+    assert offline.step("patches").dataset == "view_patches" and offline.step("patches").role == "learned_encoder"
+    args = build_parser().parse_args(["lib", "--store", "s", "--no-patch-tokens"])
+    assert args.no_patch_tokens and not build_parser().parse_args(["lib", "--store", "s"]).no_patch_tokens
+    assert "patches" not in [s.key for s in OnboardConfig(patch_tokens=False).resolve().steps]
     force = next(a for a in build_parser()._actions if a.dest == "force")
     assert tuple(force.choices) == STAGE_NAMES
     with pytest.raises(ValueError, match="unknown --force stage"):

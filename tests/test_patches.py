@@ -196,6 +196,12 @@ def test_onboarding_stores_the_views_patch_tokens(tmp_path, offline_models, monk
     assert from_store.accepted == encoded.accepted
 
     shutil.rmtree(store / "view_patches")  # a store from before the stage, or one whose table was lost
+    with Retriever.open(store, profile="offline", models=offline_models) as r:  # the query encodes instead
+        r.ranking.patches.always = True
+        assert r.tables.view_patches(from_store.candidates[0].mesh_id, [0, 1]) == {}
+        before = len(passes)
+        fallback = r.query(img, "the mustard bottle", mask=mask)
+        assert len(passes) > before and fallback.verdict.features == encoded.verdict.features
     n, calls, real_call = len(passes), [], PatchStage.__call__
     monkeypatch.setattr(PatchStage, "__call__", lambda self, t: (calls.append(t.num_rows), real_call(self, t))[1])
     onboard(tmp_path / "lib", store, models=offline_models, render=RenderConfig(resolution=192))

@@ -158,6 +158,13 @@ def build_parser() -> argparse.ArgumentParser:
         f"learned encoder is fitted at the end of the run (default: {ProbeConfig().per_mesh}; 0: no probe "
         "stage and no adapter; docs/architecture.md, Query adapter)",
     )
+    p.add_argument(
+        "--no-patch-tokens",
+        action="store_true",
+        help="do not store the learned encoder's object patch tokens of each view (about 1 MB per model): "
+        "the open-set verdict then encodes the top-1's views on each query, about 110 ms more on 2 cores "
+        "(docs/performance.md, Stored patch tokens)",
+    )
     p.add_argument("--engine", default="local", choices=["local", "ray"], help="executor (default: local)")
     p.add_argument(
         "--address",
@@ -250,6 +257,7 @@ def run(args) -> int:
             engine=args.engine,
             features=FeatureConfig(detector=args.local_features, max_keypoints=args.max_keypoints),
             probes=ProbeConfig(per_mesh=args.probes),
+            patch_tokens=not args.no_patch_tokens,
             ray=RayOptions(
                 address=args.address,
                 render_workers=args.ray_render_workers,

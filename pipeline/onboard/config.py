@@ -38,6 +38,7 @@ class OnboardConfig:
     ray: RayOptions = field(default_factory=RayOptions)  # --engine ray: cluster layout (no effect on output)
     features: FeatureConfig = field(default_factory=FeatureConfig)  # local features per view (verification)
     probes: ProbeConfig = field(default_factory=ProbeConfig)  # probe queries per model (query adapter)
+    patch_tokens: bool = True  # the learned encoder's object patch tokens per view (the patches stage)
     adapter: FitConfig = field(default_factory=FitConfig)  # the query adapter's fit (pipeline.adapter)
     max_removed: float = DEFAULT_MAX_REMOVED  # removal guard: share of active files a run may remove
     allow_removal: bool = False  # removal guard off (--allow-removal)

@@ -103,6 +103,11 @@ def probes_enabled(cfg: Any) -> bool:
     return cfg.probes.enabled
 
 
+def patches_enabled(cfg: Any) -> bool:
+    """``--no-patch-tokens`` drops the patches stage (the query then encodes the top-1's views)."""
+    return cfg.patch_tokens
+
+
 # ---------------------------------------------------------------- fingerprints, chained through inputs
 def render_fingerprint(cfg: Any, spec: ModelSpec | None, upstream: str | None) -> str:
     return cfg.render.fingerprint()
@@ -227,6 +232,7 @@ STAGES: tuple[Stage, ...] = (
         patches_fingerprint,
         patches_runner,
         view_patches_schema,
+        enabled=patches_enabled,
     ),
     Stage(
         "features",
