@@ -47,7 +47,7 @@ def compact_dataset(store: Store, dataset: str, run_id: str) -> dict:
     else:
         dt = store.delta(dataset)
         if before > 1:
-            dt.optimize.compact(writer_properties=_props(dataset))
+            dt.optimize.compact(writer_properties=_props(store, dataset))
         rows = store.read(dataset, columns=["run_id"]).num_rows
     store.refresh(dataset)  # reload at the new version
     return {
@@ -125,10 +125,14 @@ def auto_compact(store: Store, run_id: str, threshold: int = AUTO_COMPACT_FILES)
     return done
 
 
-def _props(dataset: str):
-    from pipeline.store import writer_properties
+def _props(store: Store, dataset: str):
+    """The store's Parquet settings for ``dataset``; for a blob table, row groups of one model's rows (the
+    merged files are each sorted by model, so each model's rows stay together)."""
+    from pipeline.store import BLOB_TABLES, model_group_rows, writer_properties
 
-    return writer_properties(dataset)
+    if table_of(dataset) not in BLOB_TABLES:
+        return writer_properties(dataset)
+    return writer_properties(dataset, model_group_rows(store.read(dataset, columns=["mesh_id"]).column(0)))
 
 
 def main(argv: list[str] | None = None) -> int:

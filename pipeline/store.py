@@ -402,8 +402,10 @@ class Store:
         schema = expected_schema(dataset, dim)
         table = schemas.conform(table, schema)
         table = table.cast(delta_schema(schema))  # Delta arrays are variable-length lists
-        if table_of(dataset) in BLOB_TABLES:  # one model's views together, in few row groups (writer_properties)
+        group_rows = None
+        if table_of(dataset) in BLOB_TABLES:  # one model's views together, one model per row group
             table = table.sort_by([("mesh_id", "ascending"), ("view_index", "ascending")])
+            group_rows = model_group_rows(table.column("mesh_id"))
         dt = self.delta(dataset)
         target = dt if dt is not None else str(self.path_of(dataset))
         extra = {}
@@ -417,7 +419,7 @@ class Store:
                 target,
                 table,
                 mode=mode,
-                writer_properties=writer_properties(dataset),
+                writer_properties=writer_properties(dataset, group_rows),
                 commit_properties=CommitProperties(custom_metadata={"oscar_run_id": run_id}),
                 **extra,
             )
@@ -614,7 +616,8 @@ def _bad_log_file(log: Path, parse: bool = True) -> Path:
 
 #: rows per Parquet row group of the store's tables
 ROW_GROUP_ROWS = 8192
-#: rows per row group of the ``views`` table (its rows carry the PNGs, written sorted by model): about one
+#: rows per row group of the ``views`` table (its rows carry the PNGs, written sorted by model) where its
+#: models do not all have the same number of views (else that number, :func:`model_group_rows`): about one
 #: model's views, so the query path's read of the top-1's two views (``sql/view_images.sql``, the open-set
 #: patch agreement) decompresses that model's images, not a whole file's (docs/performance.md, "Re-measured
 #: with patch agreement on another AMD EPYC"; bench/bench_view_read.py)
@@ -624,13 +627,24 @@ VIEW_ROW_GROUP_ROWS = 12
 BLOB_TABLES = ("views", "view_patches")
 
 
-def writer_properties(dataset: str | None = None):
+def model_group_rows(mesh_ids) -> int:
+    """Rows per row group of a :data:`BLOB_TABLES` write sorted by model: each model's row count when every
+    model of ``mesh_ids`` has the same (its views: one model per row group, whatever the camera layout),
+    else :data:`VIEW_ROW_GROUP_ROWS`."""
+    import pyarrow.compute as pc
+
+    counts = set(pc.value_counts(mesh_ids).field("counts").to_pylist()) if len(mesh_ids) else set()
+    return counts.pop() if len(counts) == 1 else VIEW_ROW_GROUP_ROWS
+
+
+def writer_properties(dataset: str | None = None, group_rows: int | None = None):
     """Parquet settings of the data files the store writes for ``dataset``: zstd, row groups of
-    :data:`ROW_GROUP_ROWS` rows, of :data:`VIEW_ROW_GROUP_ROWS` for :data:`BLOB_TABLES`."""
+    :data:`ROW_GROUP_ROWS` rows, of ``group_rows`` (default :data:`VIEW_ROW_GROUP_ROWS`) for
+    :data:`BLOB_TABLES`."""
     from deltalake import WriterProperties
 
     small = dataset is not None and table_of(dataset) in BLOB_TABLES
-    rows = VIEW_ROW_GROUP_ROWS if small else ROW_GROUP_ROWS
+    rows = (group_rows or VIEW_ROW_GROUP_ROWS) if small else ROW_GROUP_ROWS
     return WriterProperties(compression="ZSTD", max_row_group_size=rows)
 
 

@@ -195,7 +195,17 @@ def test_onboarding_stores_the_views_patch_tokens(tmp_path, offline_models, monk
         assert from_store.verdict.features[k] == pytest.approx(encoded.verdict.features[k], abs=2e-3), k
     assert from_store.accepted == encoded.accepted
 
+    def missing():  # the analysts' audit of what the current config's stages should have written
+        from pipeline.db import connect
+        from pipeline.sql.session import run_audit
+
+        with Store.open(store) as st:
+            columns, found = run_audit(connect(st), "missing_outputs")
+        return sorted({dict(zip(columns, r, strict=True))["stage"] for r in found})
+
+    assert missing() == []
     shutil.rmtree(store / "view_patches")  # a store from before the stage, or one whose table was lost
+    assert missing() == ["patches"]
     with Retriever.open(store, profile="offline", models=offline_models) as r:  # the query encodes instead
         r.ranking.patches.always = True
         assert r.tables.view_patches(from_store.candidates[0].mesh_id, [0, 1]) == {}
@@ -208,6 +218,35 @@ def test_onboarding_stores_the_views_patch_tokens(tmp_path, offline_models, monk
     assert sum(calls) == len(views) and sum(passes[n:]) == len(views)  # every view encoded here, once
     assert count(store, "view_patches") == len(views)
     assert count(store, "views") == len(views)  # nothing else redone
+    assert missing() == []
+
+
+def test_stored_tokens_survive_compaction_under_an_open_retriever(tmp_path, offline_models, monkeypatch, capsys):
+    """``compact --retention-hours 0`` while a Retriever holds its snapshot: the query still reads the top-1's
+    stored tokens (no encoder pass) from the leased files, and the compacted table keeps one model per
+    Parquet row group (pipeline.store.BLOB_TABLES)."""
+    import pyarrow.parquet as pq
+    from onboard_helpers import onboard
+
+    from pipeline import compact
+    from pipeline.mesh.settings import RenderConfig
+    from pipeline.query import Retriever
+    from pipeline.store import Store
+
+    store, img, mask = _three_model_store(tmp_path, offline_models)
+    onboard(tmp_path / "lib", store, models=offline_models, render=RenderConfig(resolution=192), force=("patches",))
+    assert len(Store.open(store).files("view_patches")) == 2  # two files to merge
+    with Retriever.open(store, profile="offline", models=offline_models) as r:
+        r.ranking.patches.always = True
+        monkeypatch.setattr(r.ranking.patches, "_view_images", lambda *a: pytest.fail("encoded a stored view"))
+        assert compact.main([str(store), "--retention-hours", "0"]) == 0
+        assert "kept for live readers" in capsys.readouterr().out
+        res = r.query(img, "the mustard bottle", mask=mask)
+        assert res.verdict.features["patch_sim"] is not None and res.verdict.features["patch_second"] is not None
+    (path, _), = Store.open(store).files("view_patches")
+    f = pq.ParquetFile(path)
+    ids = [f.read_row_group(g, columns=["mesh_id"]).column(0).to_pylist() for g in range(f.num_row_groups)]
+    assert f.num_row_groups == 3 and all(len(set(g)) == 1 for g in ids)  # one model (8 views) per row group
 
 
 def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_models):

@@ -227,3 +227,25 @@ def test_views_are_written_by_model_in_small_row_groups(tmp_path):
     ).fetchall()
     assert sorted((int(v), bytes(b)) for v, b in got) == [(0, b"m01/0"), (5, b"m01/5")]
     s.close()
+    # another camera layout (8 views per model): the groups follow the model, not VIEW_ROW_GROUP_ROWS
+    s = Store.open(tmp_path / "st8", create=True)
+    s.commit({"views": _views(ids[:4], 8, "r1")}, "r1")
+    s.commit({"views": _views(ids[4:], 8, "r2")}, "r2")
+    s.close()
+    assert compact_main([str(tmp_path / "st8")]) == 0
+
+    def live_groups(root):  # the row groups of the files the current version names (not the old ones)
+        with Store.open(root) as st:
+            files = [pq.ParquetFile(path).metadata for path, _ in st.files("views")]
+        return [
+            (md.row_group(g).num_rows, md.row_group(g).column(0).statistics.min, md.row_group(g).column(0).statistics.max)
+            for md in files
+            for g in range(md.num_row_groups)
+        ]
+
+    eight = live_groups(tmp_path / "st8")
+    assert [n for n, _, _ in eight] == [8] * 9 and all(lo == hi for _, lo, hi in eight)
+    mixed = Store.open(tmp_path / "mixed", create=True)  # models with different view counts: fixed groups
+    mixed.commit({"views": pa.concat_tables([_views(ids[:2], 8, "r1"), _views(ids[2:4], 13, "r1")])}, "r1")
+    mixed.close()
+    assert max(n for n, _, _ in live_groups(tmp_path / "mixed")) == VIEW_ROW_GROUP_ROWS

@@ -1,8 +1,8 @@
 -- Audit missing_outputs: active meshes that lack some of the rows the current config (the latest successful
 -- run's) should have written: views, captions, text embeddings, the embeddings of any image encoder role,
--- or local features. Returns one row per (mesh, stage) with fewer rows than that render config makes for
+-- the learned encoder's patch tokens, or local features. Returns one row per (mesh, stage) with fewer rows than that render config makes for
 -- the stage (current_config.expected_views captioned views; expected_rendered_views with the extra
--- background view, for render, image embeddings and features), and the open error that explains it, if
+-- background view, for render, image embeddings, patch tokens and features), and the open error that explains it, if
 -- any (no error: the mesh was never processed, e.g. a run was interrupted). The probe stage (query
 -- adapter) makes up to --probes rows per mesh, fewer where a chosen view shows nothing: at least one is
 -- expected.
@@ -18,6 +18,12 @@ WITH have AS (
     SELECT 'probe', mesh_id, count(DISTINCT view_index)
     FROM probe_embeddings_all
     WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'probe')
+        AND mesh_id IN (SELECT mesh_id FROM meshes)
+    GROUP BY mesh_id
+    UNION ALL
+    SELECT 'patches', mesh_id, count(DISTINCT view_index)
+    FROM view_patches_all
+    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'patches')
         AND mesh_id IN (SELECT mesh_id FROM meshes)
     GROUP BY mesh_id
     UNION ALL

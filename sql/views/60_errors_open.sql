@@ -19,6 +19,8 @@ produced AS (
     UNION ALL
     SELECT 'embed_image', mesh_id, fingerprint FROM image_embeddings_latest
     UNION ALL
+    SELECT 'patches', mesh_id, fingerprint FROM view_patches_all
+    UNION ALL
     SELECT 'features', mesh_id, fingerprint FROM view_features_all
 )
 SELECT
