@@ -12,6 +12,17 @@ VOLATILE = {"run_id", "seen_at", "at"}
 #: views per mesh of a default offline onboarding (4 per elevation ring: -15, +15 and +45 deg)
 _RENDER = OnboardConfig().render
 V = _RENDER.views_per_ring * len(_RENDER.elevations_deg)
+#: the tables two stores are compared by (:func:`content`, :func:`assert_same_tables`)
+COMPARED = (
+    "meshes",
+    "views",
+    "captions",
+    "view_features",
+    "view_patches",
+    "errors",
+    "text_embeddings",
+    "image_embeddings",
+)
 
 
 def onboard(library, store, models=None, **cfg):
@@ -23,17 +34,7 @@ def content(store_path, table_filter=lambda d: d.split("/")[0] != "runs") -> dic
     """Every dataset's rows without run-dependent columns, sorted: equal stores compare equal."""
     s = Store.open(store_path)
     out = {}
-    tables = (
-        "meshes",
-        "views",
-        "captions",
-        "view_features",
-        "view_patches",
-        "errors",
-        "text_embeddings",
-        "image_embeddings",
-    )
-    for table in tables:
+    for table in COMPARED:
         for d in s.datasets(table):
             if not table_filter(d):
                 continue
@@ -59,16 +60,7 @@ def assert_same_tables(store_a, store_b, atol: float = 1e-5) -> None:
     import numpy as np
 
     a, b = Store.open(store_a), Store.open(store_b)
-    for table in (
-        "meshes",
-        "views",
-        "captions",
-        "view_features",
-        "view_patches",
-        "errors",
-        "text_embeddings",
-        "image_embeddings",
-    ):
+    for table in COMPARED:
         assert a.datasets(table) == b.datasets(table), table
         for d in a.datasets(table):
             ta, tb = (s.read_latest(d) if table != "errors" else s.read(d) for s in (a, b))

@@ -6,7 +6,14 @@
 -- any (no error: the mesh was never processed, e.g. a run was interrupted). The probe stage (query
 -- adapter) makes up to --probes rows per mesh, fewer where a chosen view shows nothing: at least one is
 -- expected.
-WITH have AS (
+WITH per_view AS (  -- stages whose every-run rows are counted at the current fingerprint, by distinct view
+    SELECT 'probe' AS stage, mesh_id, view_index, fingerprint FROM probe_embeddings_all
+    UNION ALL
+    SELECT 'patches', mesh_id, view_index, fingerprint FROM view_patches_all
+    UNION ALL
+    SELECT 'features', mesh_id, view_index, fingerprint FROM view_features_all
+),
+have AS (
     SELECT 'render' AS stage, mesh_id, count(*) AS n FROM views GROUP BY mesh_id
     UNION ALL
     SELECT 'caption', mesh_id, count(*) FROM captions GROUP BY mesh_id
@@ -15,23 +22,11 @@ WITH have AS (
     UNION ALL
     SELECT 'embed_image:' || role, mesh_id, count(*) FROM image_embeddings GROUP BY role, mesh_id
     UNION ALL
-    SELECT 'probe', mesh_id, count(DISTINCT view_index)
-    FROM probe_embeddings_all
-    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'probe')
-        AND mesh_id IN (SELECT mesh_id FROM meshes)
-    GROUP BY mesh_id
-    UNION ALL
-    SELECT 'patches', mesh_id, count(DISTINCT view_index)
-    FROM view_patches_all
-    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'patches')
-        AND mesh_id IN (SELECT mesh_id FROM meshes)
-    GROUP BY mesh_id
-    UNION ALL
-    SELECT 'features', mesh_id, count(DISTINCT view_index)
-    FROM view_features_all
-    WHERE fingerprint IN (SELECT fingerprint FROM current_fingerprints WHERE stage = 'features')
-        AND mesh_id IN (SELECT mesh_id FROM meshes)
-    GROUP BY mesh_id
+    SELECT r.stage, r.mesh_id, count(DISTINCT r.view_index)
+    FROM per_view AS r
+    JOIN current_fingerprints AS f ON f.stage = r.stage AND f.fingerprint = r.fingerprint
+    WHERE r.mesh_id IN (SELECT mesh_id FROM meshes)
+    GROUP BY r.stage, r.mesh_id
 ),
 expected AS (
     SELECT
