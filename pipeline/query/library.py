@@ -195,7 +195,7 @@ class StoreTables:
         from pipeline.query.patches import tokens_of
 
         fp = self.onboarding.fingerprints.get("patches")
-        if not fp or self.store.dataset("view_patches") is None:
+        if not fp:  # (a store without the table: the connection's view_patches_all is empty)
             return {}
         params = {"mesh_id": str(mesh_id), "view_indices": [int(v) for v in view_indices], "patches_fingerprint": fp}
         with self._db_lock:
