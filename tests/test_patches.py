@@ -12,6 +12,7 @@ from PIL import Image
 
 from pipeline.query.accept import FEATURES
 from pipeline.query.patches import (
+    ALL_VIEWS,
     LEAD_FEATURES,
     PATCH_FEATURES,
     VIEWS,
@@ -20,6 +21,7 @@ from pipeline.query.patches import (
     patch_agreement,
     runner_up_lead,
     top_views,
+    union_agreement,
 )
 
 GRAY = (205, 205, 205)
@@ -291,6 +293,18 @@ def test_the_verdict_reads_the_top1_best_view_of_a_real_store(tmp_path, offline_
         assert res.verdict.features["patch_second"] == pytest.approx(round(max(sims), 6), abs=1e-6)
         lead = res.verdict.features["patch_lead"]
         assert lead == pytest.approx(round(want["patch_sim"] - max(sims), 6), abs=1e-6)
+        mesh = r.ranking.mesh_id.index(best.mesh_id)  # the ROI against every view of the top-1 at once
+        s_all = r.learned.score(emb.learned, np.array([mesh]), per_view=True)
+        every = top_views(s_all.view_ids[0], s_all.view_scores[0], 1024)
+        pngs = r.tables.view_images(best.mesh_id, every)
+        tokens = []
+        for v in every:
+            with Image.open(io.BytesIO(pngs[v])) as view:
+                tokens.append(enc.object_patches(view.convert("RGB")))
+        union = union_agreement(emb.learned_patches, tokens, want["patch_cover"])
+        assert len(every) > VIEWS and union["patch_gain"] >= -1e-6
+        for k, v in union.items():
+            assert res.verdict.features[k] == pytest.approx(round(v, 6), abs=2e-6), k
         assert r.tables.view_images(best.mesh_id, [999]) == {}
         assert sorted(r.tables.view_images(best.mesh_id, views)) == sorted(views)
         sub = without_meshes(r, [best.mesh_id])  # the split answers from its own top-1, with the same cache
@@ -315,10 +329,31 @@ def test_patch_features_only_when_the_calibration_reads_them():
     assert not m.wanted_runner_up(model("score", "patch_sim")) and not m.wanted_runner_up(None)
     assert m.wanted(model("patch_lead")) and m.wanted_runner_up(model("score", "patch_lead"))
     assert m.wanted_runner_up(model("patch_second"))
+    assert m.wanted(model("score", "patch_gain")) and m.wanted_union(model("patch_gain"))
+    assert not m.wanted_union(model("score", "patch_sim")) and m.wanted_union(model("patch_union"))
+    assert m.top_views(model("patch_sim")) == VIEWS and m.top_views(model("patch_gain")) == ALL_VIEWS
     m.always = True
     assert m.wanted(None) and m.wanted(model("score")) and m.wanted_runner_up(None)
-    shipped = load_calibration("offline").variants["two-stage+verify"]
-    assert "patch_sim" in shipped.features and PatchMatcher(lambda *a: {}, lambda: None).wanted(shipped)
+    shipped = load_calibration("offline").variants["two-stage+verify"]  # since docs/results.md 12.4
+    assert {"patch_sim", "patch_gain"} <= set(shipped.features)
+    assert PatchMatcher(lambda *a: {}, lambda: None).top_views(shipped) == ALL_VIEWS
+
+
+def test_union_agreement_gains_where_parts_match_from_different_views():
+    """``patch_union`` takes each ROI patch's best match over every view; ``patch_gain`` is what that adds
+    over the best single view's cover: nothing when one view explains every part, much when each part is
+    explained by another view."""
+    roi = np.eye(4, dtype=np.float32)  # four parts
+    whole = roi.copy()  # one view shows all four
+    halves = [roi[:2], roi[2:]]  # two views, two parts each
+    one = patch_agreement(roi, whole)["patch_cover"]
+    assert union_agreement(roi, [whole, None], one) == pytest.approx({"patch_union": 1.0, "patch_gain": 0.0})
+    best = max(patch_agreement(roi, h)["patch_cover"] for h in halves)
+    got = union_agreement(roi, halves, best)
+    assert got["patch_union"] == pytest.approx(1.0) and got["patch_gain"] == pytest.approx(0.5)
+    assert union_agreement(roi, halves, None)["patch_gain"] is None
+    assert union_agreement(None, halves, 0.5) == dict.fromkeys(("patch_union", "patch_gain"))
+    assert union_agreement(roi, [None], 0.5) == dict.fromkeys(("patch_union", "patch_gain"))
 
 
 def test_runner_up_lead():
@@ -384,8 +419,8 @@ def test_patch_pass_starts_beside_verification(tmp_path, offline_models, monkeyp
         assert future is not None and future[1].done()
         assert early.verdict.features == in_place.verdict.features
         assert [c.mesh_id for c in early.candidates] == [c.mesh_id for c in in_place.candidates]
-        # the early pass read the pre-verification top-1's view tokens, once: the verdict (which
-        # also reads the runner-up's, as `always` asks) found them cached
+        # the early pass read the pre-verification top-1's view tokens, every view of it (the union
+        # features, as `always` asks), once: the verdict's best two and its union found them cached
         assert reads.count(mesh) == 1 and reads[0] == mesh
 
 

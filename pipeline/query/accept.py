@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.query.patches import LEAD_FEATURES, PATCH_FEATURES
+from pipeline.query.patches import LEAD_FEATURES, PATCH_FEATURES, UNION_FEATURES
 
 #: every feature an answer offers; a variant's model uses a subset (stored in the calibration)
 FEATURES = (
@@ -54,6 +54,7 @@ FEATURES = (
     "learned_lead",
     *PATCH_FEATURES,
     *LEAD_FEATURES,
+    *UNION_FEATURES,
 )
 #: meshes whose image scores make the cohort of ``cohort_z`` (all of them in smaller libraries)
 COHORT_SIZE = 1024

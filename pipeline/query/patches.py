@@ -44,6 +44,10 @@ from PIL import Image
 PATCH_FEATURES = ("patch_cover", "patch_sim", "patch_mnn", "patch_low")
 #: the features comparing the top-1's patch agreement with the runner-up's (:func:`runner_up_lead`)
 LEAD_FEATURES = ("patch_second", "patch_lead")
+#: the features of the ROI against every view of the top-1 at once (:func:`union_agreement`)
+UNION_FEATURES = ("patch_union", "patch_gain")
+#: more views than any camera layout has: :data:`UNION_FEATURES` read every view of the top-1
+ALL_VIEWS = 1024
 #: the quantile of the ROI patches' best cosines that ``patch_low`` reads
 LOW_QUANTILE = 0.25
 #: a pixel is the object's when a channel differs from the background by more than this (as the encoders)
@@ -109,6 +113,18 @@ def runner_up_lead(top: dict[str, float | None], second: dict[str, float | None]
     return {"patch_second": b, "patch_lead": None if a is None or b is None else float(a - b)}
 
 
+def union_agreement(roi: np.ndarray | None, views: list[np.ndarray | None], cover: float | None) -> dict[str, float | None]:
+    """:data:`UNION_FEATURES`: ``patch_union``, the mean over the ROI's object patches of the best cosine to a
+    patch of any of ``views`` (a model's every view); ``patch_gain``, how much that exceeds ``cover`` (the
+    ``patch_cover`` of its best views). A right model explains the ROI from one pose; a look-alike's parts
+    match from several, so allowing every view gains it more. ``None`` where there is nothing to compare."""
+    kept = [np.asarray(v, np.float32) for v in views if v is not None and len(v)]
+    if roi is None or not len(roi) or not kept:
+        return dict.fromkeys(UNION_FEATURES)
+    union = float((np.asarray(roi, np.float32) @ np.concatenate(kept).T).max(axis=1).mean())
+    return {"patch_union": union, "patch_gain": None if cover is None else union - float(cover)}
+
+
 def patch_agreement(roi: np.ndarray | None, view: np.ndarray | None) -> dict[str, float | None]:
     """:data:`PATCH_FEATURES` of the ROI's and the view's object patch tokens (rows, L2-normalised);
     ``None`` for both when either side has none."""
@@ -155,8 +171,17 @@ class PatchMatcher:
         """Whether a verdict by ``model`` (an :class:`pipeline.query.accept.AcceptModel` or ``None``) needs
         the patch features."""
         return self.always or bool(
-            model is not None and set(PATCH_FEATURES + LEAD_FEATURES) & set(model.features)
+            model is not None and set(PATCH_FEATURES + LEAD_FEATURES + UNION_FEATURES) & set(model.features)
         )
+
+    def wanted_union(self, model) -> bool:
+        """Whether a verdict by ``model`` also needs the ROI against every view of the top-1 (:data:`UNION_FEATURES`)."""
+        return self.always or bool(model is not None and set(UNION_FEATURES) & set(model.features))
+
+    def top_views(self, model) -> int:
+        """How many of the top-1's views, best first, a verdict by ``model`` reads: all of them for
+        :data:`UNION_FEATURES`, else :data:`VIEWS`."""
+        return ALL_VIEWS if self.wanted_union(model) else VIEWS
 
     def wanted_runner_up(self, model) -> bool:
         """Whether a verdict by ``model`` also needs the runner-up's patch agreement (:data:`LEAD_FEATURES`)."""

@@ -8,7 +8,8 @@ come from the forward pass that embeds the views (the ``embed_image`` stage of t
 before this stage existed, the Ray engine's per-step actors) are encoded here.
 
 Stored as float16 (what the query's token cache holds): the patches that hold the object, ``n_patches`` x
-``dim``, each row L2-normalised; about 1.5 MB per model of 12 views at 224 px (docs/architecture.md).
+``dim``, each row L2-normalised; about 1.1 MB per model of 12 views at 224 px (84 MB for the 78 YCB
+models, docs/performance.md, "Stored patch tokens").
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Start the open-set verdict's patch agreement early: encode the current top-1's views beside verification.
 
-The acceptance step compares the ROI's patch tokens with those of the top-1's two best stored views, one
+The acceptance step compares the ROI's patch tokens with those of the top-1's two best stored views (every
+view where the calibration reads :data:`pipeline.query.patches.UNION_FEATURES`), one
 encoder pass (torch) that used to wait for verification (OpenCV), which ran before it. Both release the GIL,
 so where torch leaves a core free (:func:`pipeline.query.overlap.overlapping`) this step starts that pass
 for the model that leads before verification, in the shared side pool, and verification runs meanwhile.
@@ -31,11 +32,13 @@ def run(state: RankState) -> RankState:
         return state
     if not len(order) or not state.request.verify or emb.local is None or not overlapping():
         return state
-    if not ctx.patches.wanted(ctx.accept_model(variant_of(state.request.mode, True))):
+    model = ctx.accept_model(variant_of(state.request.mode, True))
+    if not ctx.patches.wanted(model):
         return state
     position = int(order[0])
     mesh = int(state.mesh_idx[position])
-    mesh_id, views = ctx.mesh_id[mesh], best_views(ctx.learned, emb.learned, mesh)
+    mesh_id = ctx.mesh_id[mesh]
+    views = best_views(ctx.learned, emb.learned, mesh, k=ctx.patches.top_views(model))  # all, for the union
     if views:  # only where a side thread is free: run in place, the pass would be wasted if the top-1 changes
         started = beside_if_free(lambda: ctx.patches.view_tokens(mesh_id, views))
         if started is not None:
