@@ -331,12 +331,12 @@ def test_patch_features_only_when_the_calibration_reads_them():
     assert m.wanted_runner_up(model("patch_second"))
     assert m.wanted(model("score", "patch_gain")) and m.wanted_union(model("patch_gain"))
     assert not m.wanted_union(model("score", "patch_sim")) and m.wanted_union(model("patch_union"))
-    assert m.top_views(model("patch_sim")) == VIEWS and m.top_views(model("patch_gain")) == ALL_VIEWS
+    assert m.views_read(model("patch_sim")) == VIEWS and m.views_read(model("patch_gain")) == ALL_VIEWS
     m.always = True
     assert m.wanted(None) and m.wanted(model("score")) and m.wanted_runner_up(None)
     shipped = load_calibration("offline").variants["two-stage+verify"]  # since docs/results.md 12.4
     assert {"patch_sim", "patch_gain"} <= set(shipped.features)
-    assert PatchMatcher(lambda *a: {}, lambda: None).top_views(shipped) == ALL_VIEWS
+    assert PatchMatcher(lambda *a: {}, lambda: None).views_read(shipped) == ALL_VIEWS
 
 
 def test_union_agreement_gains_where_parts_match_from_different_views():

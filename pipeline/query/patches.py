@@ -178,7 +178,7 @@ class PatchMatcher:
         """Whether a verdict by ``model`` also needs the ROI against every view of the top-1 (:data:`UNION_FEATURES`)."""
         return self.always or bool(model is not None and set(UNION_FEATURES) & set(model.features))
 
-    def top_views(self, model) -> int:
+    def views_read(self, model) -> int:
         """How many of the top-1's views, best first, a verdict by ``model`` reads: all of them for
         :data:`UNION_FEATURES`, else :data:`VIEWS`."""
         return ALL_VIEWS if self.wanted_union(model) else VIEWS

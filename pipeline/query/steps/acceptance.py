@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from pipeline.query.accept import cohort_indices, cohort_stats, judge, ranking_features, variant_of
-from pipeline.query.patches import ALL_VIEWS, best_views, runner_up_lead, union_agreement
+from pipeline.query.patches import VIEWS, best_views, runner_up_lead, union_agreement
 from pipeline.query.steps.state import RankState
 
 
@@ -57,14 +57,14 @@ def run(state: RankState, *, key: str = "fused") -> RankState:
         early = state.patch_prefetch
         if early is not None and early[0] == int(order[0]):  # started beside verification: its tokens
             early[1].result()  # are then in the view cache (raises what the encoder raised)
-        top = _patches(state, int(order[0]))
+        mesh = int(state.mesh_idx[int(order[0])])  # its views best first: two, or all for the union
+        ranked = best_views(ctx.learned, state.emb.learned, mesh, k=ctx.patches.views_read(model))
+        top = ctx.patches.features(state.emb.learned_patches, ctx.mesh_id[mesh], ranked[:VIEWS])
         feats.update(top)
         if len(order) > 1 and ctx.patches.wanted_runner_up(model):  # and the runner-up's, for its lead
             feats.update(runner_up_lead(top, _patches(state, int(order[1]))))
         if ctx.patches.wanted_union(model):  # and against every view of the top-1 at once
-            mesh = int(state.mesh_idx[int(order[0])])
-            views = best_views(ctx.learned, state.emb.learned, mesh, k=ALL_VIEWS)
-            tokens = ctx.patches.view_tokens(ctx.mesh_id[mesh], views)
+            tokens = ctx.patches.view_tokens(ctx.mesh_id[mesh], ranked)
             feats.update(union_agreement(state.emb.learned_patches, tokens, top.get("patch_cover")))
         state.timings["patches_ms"] = (time.perf_counter() - t0) * 1000
     threshold = state.request.accept_threshold

@@ -38,7 +38,7 @@ def run(state: RankState) -> RankState:
     position = int(order[0])
     mesh = int(state.mesh_idx[position])
     mesh_id = ctx.mesh_id[mesh]
-    views = best_views(ctx.learned, emb.learned, mesh, k=ctx.patches.top_views(model))  # all, for the union
+    views = best_views(ctx.learned, emb.learned, mesh, k=ctx.patches.views_read(model))  # all, for the union
     if views:  # only where a side thread is free: run in place, the pass would be wasted if the top-1 changes
         started = beside_if_free(lambda: ctx.patches.view_tokens(mesh_id, views))
         if started is not None:
