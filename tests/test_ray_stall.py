@@ -38,18 +38,32 @@ def bare_engine(stall_s=30.0, started=True):
         (29, 1, 2, False),  # not long enough
         (31, 0, 2, False),  # no node lost in this round: a slow stage is not a stall
         (31, 1, 0, False),  # every actor placed: the work is just slow
+        (150, 1, 0, True),  # ... but not for 5 x stall_s after a node loss: a wait Ray does not show
+        (150, 0, 0, False),  # no node lost in the whole run: never abandoned, however slow
     ],
 )
-def test_a_round_is_stalled_only_after_a_node_loss_with_actors_waiting(monkeypatch, waited, lost_now, waiting, stalled):
+def test_a_round_is_stalled_only_after_a_node_loss(monkeypatch, waited, lost_now, waiting, stalled):
     monkeypatch.setattr(engine, "waiting_actors", lambda: waiting)
     monkeypatch.setattr(engine.time, "monotonic", lambda: 1000.0 + waited)
-    e, watch = bare_engine(), Watch(["a"] * lost_now)
+    e, watch = bare_engine(), Watch([f"n{i}" for i in range(lost_now)])
     if stalled:
         with pytest.raises(engine.RoundStalled) as exc:
             e._check_stalled(watch, 0, 1000.0, {"m1"})
         assert exc.value.received == {"m1"}
     else:
         e._check_stalled(watch, 0, 1000.0, {"m1"})
+
+
+def test_a_node_lost_before_the_round_abandons_it_only_after_stall_placed_s(monkeypatch):
+    """A round planned after the loss (``lost_before`` counts it) that hangs with every actor placed."""
+    monkeypatch.setattr(engine, "waiting_actors", lambda: 3)
+    e, watch = bare_engine(), Watch(["n0"])
+    e.cfg = types.SimpleNamespace(ray=RayOptions(stall_s=30, stall_placed_s=60))
+    monkeypatch.setattr(engine.time, "monotonic", lambda: 1059.0)
+    e._check_stalled(watch, 1, 1000.0, set())  # waiting actors alone do not count for an old loss
+    monkeypatch.setattr(engine.time, "monotonic", lambda: 1061.0)
+    with pytest.raises(engine.RoundStalled, match="no batch for 61 s after a node loss, every actor placed"):
+        e._check_stalled(watch, 1, 1000.0, set())
 
 
 def test_a_callers_own_ray_session_is_not_dropped():

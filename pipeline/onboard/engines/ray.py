@@ -108,7 +108,8 @@ class RoundStalled(Exception):
     """A round that stopped moving after a node loss (see ``RayOptions.stall_s``); what it committed."""
 
     def __init__(self, received: set[str], waited: float, actors: int) -> None:
-        super().__init__(f"no batch for {waited:.0f} s after a node loss, {actors} actor(s) waiting")
+        waiting = f"{actors} actor(s) waiting" if actors else "every actor placed"
+        super().__init__(f"no batch for {waited:.0f} s after a node loss, {waiting}")
         self.received = received
 
 
@@ -392,16 +393,21 @@ class RayEngine(Engine):
 
     def _check_stalled(self, watch: ClusterWatch, lost_before: int, moved: float, received: set[str]) -> None:
         """Raise :class:`RoundStalled` when, since a node of this round was lost, no batch came for
-        ``stall_s`` seconds while an actor of the run waits to be placed."""
+        ``stall_s`` seconds while an actor of the run waits to be placed; or when, after any node loss
+        of the run, no batch came for ``stall_placed_s`` seconds whatever Ray says of its actors (a run
+        with no node lost is never abandoned: its work is just slow)."""
+        opts = self.cfg.ray
         waited = time.monotonic() - moved
-        if waited < self.cfg.ray.stall_s:
+        if waited < opts.stall_s:
             return
         watch.check()
-        if len(watch.lost) <= lost_before:
-            return
-        actors = waiting_actors()
-        if actors:
-            raise RoundStalled(set(received), waited, actors)
+        if len(watch.lost) > lost_before:
+            actors = waiting_actors()
+            if actors:
+                raise RoundStalled(set(received), waited, actors)
+        limit = opts.stall_placed_s if opts.stall_placed_s is not None else 5 * opts.stall_s
+        if watch.lost and waited >= limit:
+            raise RoundStalled(set(received), waited, 0)
 
     def _reconnect(self, watch: ClusterWatch, pending: list[dict], received: set[str]) -> None:
         """Disconnect (Ray ends this driver's actors, the stalled round's with them) and connect again,

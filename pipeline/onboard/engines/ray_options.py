@@ -45,6 +45,10 @@ class RayOptions:
     #: cluster and can wait for ever for room the survivors lack; the round is abandoned (the driver
     #: reconnects, which ends its actors) and the rest is planned again on the nodes alive
     stall_s: float = 120.0
+    #: seconds a round may go without a batch once any node of the run was lost, even with every actor
+    #: placed (None: 5 x ``stall_s``): a safety net for a round that waits on a lost node in a way Ray
+    #: does not show as a waiting actor; the round is abandoned and redone as after ``stall_s``
+    stall_placed_s: float | None = None
     #: Testing only: "STAGE:MESH_ID_PREFIX:MARKER_FILE" kills the STAGE actor (render, caption,
     #: embed_text, embed_image) once, on the batch holding that mesh, if MARKER_FILE does not exist yet
     #: (it is created first); "STAGE:MESH_ID_PREFIX:" kills it on every attempt.
