@@ -49,7 +49,7 @@ def main() -> int:
         ref = None
         for precision in ("fp32", "bf16"):
             t0 = time.perf_counter()
-            enc = LearnedViewEncoder(size=size, precision=precision, layer=layer)
+            enc = LearnedViewEncoder(size=size, precision=precision, layer=layer, batch_size=32)
             opened = time.perf_counter() - t0
             enc.encode_image(images[:4])
             t0 = time.perf_counter()

@@ -454,3 +454,22 @@ def test_roi_patches_come_from_the_same_pass_and_keep_the_object(tiny_dir):
     assert v.shape[1] == width and len(v) <= grid * grid
     blank = enc.object_patches(Image.new("RGB", (40, 40), fill))
     assert len(blank) == grid * grid  # nothing off the background: every patch
+
+
+def test_batch_size_changes_no_embedding_or_patch(tiny_dir):
+    """Onboarding's view pass in batches of 16 (the default, docs/performance.md "Encoder batch 16") stores
+    what one batch of every view, or one view at a time, would: batching is only a speed setting."""
+    import inspect
+
+    from pipeline.models.focus_encoder import LearnedViewEncoder
+
+    assert inspect.signature(LearnedViewEncoder).parameters["batch_size"].default == 16
+    images = [photo(i, (40 + i, 36)) for i in range(5)]
+    runs = {}
+    for batch in (1, 2, 16):
+        enc = LearnedViewEncoder(str(tiny_dir), pooling="cls", size=56, precision="fp32", batch_size=batch)
+        runs[batch] = enc.encode_image_patches(images)
+    for batch in (1, 2):
+        np.testing.assert_allclose(runs[batch][0], runs[16][0], atol=1e-5)
+        for a, b in zip(runs[batch][1], runs[16][1], strict=True):
+            np.testing.assert_allclose(a.astype(np.float32), b.astype(np.float32), atol=2e-3)

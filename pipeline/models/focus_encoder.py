@@ -128,7 +128,7 @@ class LearnedViewEncoder:
         layer: int | None = None,
         exposure: float = 0.0,
         precision: str = "auto",
-        batch_size: int = 32,
+        batch_size: int = 16,
         device: str | None = None,
         fill: tuple[int, int, int] | None = None,
     ) -> None:
