@@ -451,7 +451,7 @@ class RayEngine(Engine):
     def _build_dataset(self, items: list[dict], resources: dict, isolate: bool):
         import ray
 
-        from pipeline.onboard.engines.ray_workers import RenderWorker, StepWorker
+        from pipeline.onboard.engines.ray_workers import RenderWorker, StepWorker, step_groups
 
         opts = self.cfg.ray
         # a crashed actor is replaced (on a surviving node if its node died); the batch it held is not
@@ -459,8 +459,9 @@ class RayEngine(Engine):
         # round, and the driver re-submits its meshes in the next round (_stream)
         retry = {"max_restarts": -1, "max_task_retries": 0}
         steps = [s for s in self.run_spec.downstream if any(s.key in r["todo"] for r in items)]
-        n_caption = sum(opts.caption_actors for s in steps if _captioner_pool(s))
-        n_embed = sum(opts.embed_actors for s in steps if not _captioner_pool(s))
+        groups = [[self.run_spec.step(k) for k in g] for g in step_groups(steps)]  # one actor pool each
+        n_caption = sum(opts.caption_actors for g in groups if _captioner_pool(g[0]))
+        n_embed = sum(opts.embed_actors for g in groups if not _captioner_pool(g[0]))
         source = self.run_spec.source.key
         n_render = sum(source in r["todo"] for r in items)
         cpus, gpus = resources.get("CPU", 1.0), resources.get("GPU", 0.0)
@@ -480,11 +481,11 @@ class RayEngine(Engine):
             num_cpus=layout.render_cpus,
             **common,
         )
-        for s in steps:
-            big = _captioner_pool(s)
+        for g in groups:
+            big = _captioner_pool(g[0])
             ds = ds.map_batches(
                 StepWorker,
-                fn_constructor_args=(self.run_spec, self.run_id, s.key, s is steps[-1]),
+                fn_constructor_args=(self.run_spec, self.run_id, tuple(s.key for s in g), g is groups[-1]),
                 batch_size=1 if isolate else (opts.caption_batch_size if big else opts.embed_batch_size),
                 compute=_pool(opts.caption_actors if big else opts.embed_actors),
                 num_cpus=layout.model_cpus,

@@ -156,23 +156,32 @@ class _Worker:
 
     def __call__(self, batch: pa.Table) -> pa.Table:
         rows = batch.to_pylist()
-        self._fault.maybe_crash(rows)
-        self._pause.maybe_wait(rows)
-        t0 = time.perf_counter()
-        done = self.process(rows)
-        if done:
-            share = (time.perf_counter() - t0) / len(done)
-            for r in done:
-                r[self.timing] = (r.get(self.timing) or 0.0) + share
+        self.process_batch(rows)
         if self.final:  # stored inputs are not needed by the driver: do not ship them back
             for r in rows:
                 for k in input_keys(self.run):
                     r[stored_column(k)] = None
         return pa.Table.from_pylist(rows, schema=self.schema)
 
+    def process_batch(self, rows: list[dict]) -> None:
+        """Run this worker's step on the rows (a worker of several steps runs each in turn)."""
+        _timed(rows, self._fault, self._pause, self.timing, lambda: self.process(rows))
+
     def process(self, rows: list[dict]) -> list[dict]:
         """Fill this step's blob of the rows that need it; return those rows (timed here)."""
         raise NotImplementedError
+
+
+def _timed(rows: list[dict], fault: _Fault, pause: _Pause, timing: str, work) -> None:
+    """The test hooks of one stage, then ``work()``, whose seconds are split over the rows it returns."""
+    fault.maybe_crash(rows)
+    pause.maybe_wait(rows)
+    t0 = time.perf_counter()
+    done = work()
+    if done:
+        share = (time.perf_counter() - t0) / len(done)
+        for r in done:
+            r[timing] = (r.get(timing) or 0.0) + share
 
 
 class RenderWorker(_Worker):
@@ -255,32 +264,65 @@ def _read_part(part: str, mesh_ids: list[str], fingerprint: str, table: str) -> 
 
 
 class StepWorker(_Worker):
-    """Runs one step (captioner or encoder, built when the actor starts) over the meshes that need it:
-    its input is this run's output of the input step, else the stored one."""
+    """Runs one step, or several consecutive steps that read the same input with the same model
+    (:func:`step_groups`), over the meshes that need them: their input is this run's output of the input
+    step, else the stored one. The model is built once, when the actor starts; the steps of a group run
+    inside one :func:`~pipeline.onboard.stages.decoded.batch_scope`, as the local engine's batch does, so
+    each view is decoded once and what one step keeps for the next (the learned encoder's object patch
+    tokens, from the pass that embeds the views) is not computed again."""
 
-    def __init__(self, run: RunSpec, run_id: str, key: str, final: bool = False):
-        super().__init__(run, run_id, run.step(key), final)
-        self.runner = self.step.stage.runner(self.cfg, run_id, self.step)
-        _ = self.runner.model  # load the model when the actor starts, not inside the first batch
+    def __init__(self, run: RunSpec, run_id: str, keys: tuple[str, ...], final: bool = False):
+        steps = [run.step(k) for k in keys]
+        super().__init__(run, run_id, steps[0], final)
+        self.steps = steps
+        first = steps[0].stage.runner(self.cfg, run_id, steps[0])
+        model = first.model  # load the model when the actor starts, not inside the first batch
+        self.runners = [first, *(s.stage.runner(self.cfg, run_id, s, model=model) for s in steps[1:])]
+        ray_opts = run.cfg.ray
+        self._hooks = [(_Fault(ray_opts.inject_fault, s.stage.name), _Pause(ray_opts.pause_at, s.stage.name)) for s in steps]
+
+    def process_batch(self, rows: list[dict]) -> None:
+        from pipeline.onboard.stages import decoded
+
+        with decoded.batch_scope():
+            for step, runner, (fault, pause) in zip(self.steps, self.runners, self._hooks, strict=True):
+                _timed(rows, fault, pause, f"t_{step.stage.name}", lambda s=step, f=runner: self._run(s, f, rows))
 
     def process(self, rows: list[dict]) -> list[dict]:
+        return self._run(self.step, self.runners[0], rows)
+
+    def _run(self, step: Step, runner, rows: list[dict]) -> list[dict]:
         todo = []
         for r in rows:
-            if self.step.key not in r["todo"] or failed_so_far(r, self.run):
+            if step.key not in r["todo"] or failed_so_far(r, self.run):
                 continue
-            src = self._input(r)
+            src = self._input(step, r)
             if src is not None and src.num_rows:
                 todo.append((r, src))
         if not todo:
             return []
-        out = by_mesh(self.runner(pa.concat_tables([s for _, s in todo])))
+        out = by_mesh(runner(pa.concat_tables([s for _, s in todo])))
         for r, _ in todo:
-            r[self.step.key] = pack(out[r["mesh_id"]])
+            r[step.key] = pack(out[r["mesh_id"]])
         return [r for r, _ in todo]
 
-    def _input(self, row: dict) -> pa.Table | None:
-        """The mesh's input rows as this step takes them (``None``: neither made now nor stored)."""
-        made = unpack(row[self.step.input])
+    def _input(self, step: Step, row: dict) -> pa.Table | None:
+        """The mesh's input rows as ``step`` takes them (``None``: neither made now nor stored)."""
+        made = unpack(row[step.input])
         if made is not None:
-            return schemas.conform(made, self.run.step(self.step.input).stage.target(made))
-        return unpack(row[stored_column(self.step.input)])
+            return schemas.conform(made, self.run.step(step.input).stage.target(made))
+        return unpack(row[stored_column(step.input)])
+
+
+def step_groups(steps: list[Step]) -> list[tuple[str, ...]]:
+    """``steps`` (in run order) cut into the groups one :class:`StepWorker` runs: consecutive steps that read
+    the same input with the same model spec share one actor (one model copy; in the offline profile the
+    learned encoder's ``embed_image``, probe and patch steps), every other step has its own."""
+    groups: list[list[Step]] = []
+    for s in steps:
+        last = groups[-1][0] if groups else None
+        if last is not None and s.spec is not None and (s.input, s.role, s.spec) == (last.input, last.role, last.spec):
+            groups[-1].append(s)
+        else:
+            groups.append([s])
+    return [tuple(s.key for s in g) for g in groups]

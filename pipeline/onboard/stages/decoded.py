@@ -4,8 +4,9 @@ same rendered PNGs, and each used to decode them again (four decodes of every vi
 Inside :func:`batch_scope` (the engines' ``commit_batch`` opens one per batch) :func:`decoded_view` keeps the
 images it decoded, keyed by a digest of the PNG bytes (never by mesh id or fingerprint, so a re-rendered view
 is never served stale), and drops them all when the scope ends. A batch holds ``batch_size`` (16) meshes of
-13 views, 208 images of 0.75 MiB at 512 px; :data:`CAPACITY` bounds a larger batch. Outside a scope (the
-Ray engine's per-step actors, which see each view once) every call decodes. Consumers treat the images as
+13 views, 208 images of 0.75 MiB at 512 px; :data:`CAPACITY` bounds a larger batch. Outside a scope (a Ray
+actor of a single step, which sees each view once; an actor of several steps opens one per batch) every
+call decodes. Consumers treat the images as
 read-only (no onboarding stage draws on its input).
 
 Why hand-written rather than :func:`functools.lru_cache`: that would key on the whole bytes object (holding

@@ -4,8 +4,9 @@ verdict's patch agreement (:mod:`pipeline.query.patches`).
 Without them the query encodes the top-1's two best views from their PNGs on every uncached query, the
 largest part of a warm masked query on 2 cores (docs/performance.md, "Stored patch tokens"). The tokens
 come from the forward pass that embeds the views (the ``embed_image`` stage of the same batch keeps them,
-:func:`pipeline.onboard.stages.decoded.remember`); only views that pass did not see (a store onboarded
-before this stage existed, the Ray engine's per-step actors) are encoded here.
+:func:`pipeline.onboard.stages.decoded.remember`; the Ray engine runs both steps in one actor,
+:func:`pipeline.onboard.engines.ray_workers.step_groups`); only views that pass did not see (a store
+onboarded before this stage existed) are encoded here.
 
 Stored as float16 (what the query's token cache holds): the patches that hold the object, ``n_patches`` x
 ``dim``, each row L2-normalised; about 1.1 MB per model of 12 views at 224 px (84 MB for the 78 YCB
