@@ -459,7 +459,7 @@ class RayEngine(Engine):
         # round, and the driver re-submits its meshes in the next round (_stream)
         retry = {"max_restarts": -1, "max_task_retries": 0}
         steps = [s for s in self.run_spec.downstream if any(s.key in r["todo"] for r in items)]
-        groups = [[self.run_spec.step(k) for k in g] for g in step_groups(steps)]  # one actor pool each
+        groups = step_groups(steps)  # one actor pool each
         n_caption = sum(opts.caption_actors for g in groups if _captioner_pool(g[0]))
         n_embed = sum(opts.embed_actors for g in groups if not _captioner_pool(g[0]))
         source = self.run_spec.source.key

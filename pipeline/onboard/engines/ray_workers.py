@@ -10,6 +10,7 @@ column); a mesh that failed a step skips the later ones, as in the local engine.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
 import time
@@ -284,12 +285,10 @@ class StepWorker(_Worker):
     def process_batch(self, rows: list[dict]) -> None:
         from pipeline.onboard.stages import decoded
 
-        with decoded.batch_scope():
+        # a single step sees each view once: nothing to share, so no images held for the batch
+        with decoded.batch_scope() if len(self.steps) > 1 else contextlib.nullcontext():
             for step, runner, (fault, pause) in zip(self.steps, self.runners, self._hooks, strict=True):
                 _timed(rows, fault, pause, f"t_{step.stage.name}", lambda s=step, f=runner: self._run(s, f, rows))
-
-    def process(self, rows: list[dict]) -> list[dict]:
-        return self._run(self.step, self.runners[0], rows)
 
     def _run(self, step: Step, runner, rows: list[dict]) -> list[dict]:
         todo = []
@@ -314,7 +313,7 @@ class StepWorker(_Worker):
         return unpack(row[stored_column(step.input)])
 
 
-def step_groups(steps: list[Step]) -> list[tuple[str, ...]]:
+def step_groups(steps: list[Step]) -> list[list[Step]]:
     """``steps`` (in run order) cut into the groups one :class:`StepWorker` runs: consecutive steps that read
     the same input with the same model spec share one actor (one model copy; in the offline profile the
     learned encoder's ``embed_image``, probe and patch steps), every other step has its own."""
@@ -325,4 +324,4 @@ def step_groups(steps: list[Step]) -> list[tuple[str, ...]]:
             groups[-1].append(s)
         else:
             groups.append([s])
-    return [tuple(s.key for s in g) for g in groups]
+    return groups
